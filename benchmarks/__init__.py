@@ -1,0 +1,1 @@
+"""Benchmark harness: one module per paper table (``python -m benchmarks.<table>``)."""

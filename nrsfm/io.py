@@ -1,0 +1,57 @@
+"""File helpers: atomic writes and reading any supported sequence file."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from nrsfm.errors import DataFormatError
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
+
+    Nothing is written to ``path`` if the body raises, and an existing file is
+    never replaced unless ``overwrite`` is True.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: the file exists; pass --force (overwrite=True) to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def load_sequence(path: str | os.PathLike):
+    """Read a :class:`~nrsfm.sequence.Sequence` from `.npz` or a CMU `.mat` file.
+
+    `.npz` files must be nrsfm sequences (see :meth:`Sequence.save`); `.mat`
+    files may be in the Akhter layout (``W``, ``S``, ``Rs``) or the PND layout
+    (``X`` of shape 3 x P x F).
+    """
+    from nrsfm.sequence import Sequence
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.is_dir():
+        raise DataFormatError(f"{path}: expected a file, got a directory")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return Sequence.load(path)
+    if suffix == ".mat":
+        from nrsfm.datasets.cmu import load_cmu_mat
+
+        return load_cmu_mat(path)
+    raise DataFormatError(f"{path}: expected a .npz sequence or a CMU NRSfM .mat file, got a '{suffix or 'no'}' "
+                          "extension")

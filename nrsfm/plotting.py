@@ -1,0 +1,128 @@
+"""Headless plots: input / reconstruction / ground truth side by side, and error curves.
+
+Uses matplotlib's Agg backend; every function writes a PNG (atomically) and
+returns its path.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from nrsfm.sequence import Sequence
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _align_for_display(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Rotate/reflect ``pred`` `(F, P, 3)` onto ``gt`` with the global e3D alignment, for drawing."""
+    a = (pred - pred.mean(axis=1, keepdims=True)).reshape(-1, 3)
+    b = (gt - gt.mean(axis=1, keepdims=True)).reshape(-1, 3)
+    q_ls = np.linalg.lstsq(a, b, rcond=None)[0].T
+    u, _, vt = np.linalg.svd(q_ls)
+    return (pred - pred.mean(axis=1, keepdims=True)) @ (u @ vt).T
+
+
+def _draw(ax, pts: np.ndarray, edges, *, three_d: bool, colour: str, vis: np.ndarray | None = None) -> None:
+    shown = np.ones(len(pts), bool) if vis is None else vis > 0
+    if three_d:
+        # draw with y pointing up (camera y points down)
+        x, y, z = pts[:, 0], pts[:, 2], -pts[:, 1]
+        ax.scatter(x[shown], y[shown], z[shown], s=6, c=colour)
+        for i, j in edges if edges is not None else ():
+            ax.plot([x[i], x[j]], [y[i], y[j]], [z[i], z[j]], c=colour, lw=1)
+        mid = np.array([x.mean(), y.mean(), z.mean()])
+        half = 0.5 * max(np.ptp(x), np.ptp(y), np.ptp(z), 1e-9)
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
+    else:
+        x, y = pts[:, 0], -pts[:, 1]
+        ax.scatter(x[shown], y[shown], s=6, c=colour)
+        ax.scatter(x[~shown], y[~shown], s=10, c="red", marker="x")
+        for i, j in edges if edges is not None else ():
+            if shown[i] and shown[j]:
+                ax.plot([x[i], x[j]], [y[i], y[j]], c=colour, lw=1)
+        ax.set_aspect("equal", adjustable="datalim")
+
+
+def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str | os.PathLike, *,
+                        frames: list[int] | None = None, title: str | None = None, overwrite: bool = True) -> Path:
+    """2D input, reconstruction and ground truth side by side for chosen frames.
+
+    Args:
+        seq: the input sequence (2D, visibility, optional ground truth, edges).
+        points_3d: `(F, P, 3)` reconstruction in the camera frame, or None.
+        frames: frame indices (default: 4 evenly spaced frames).
+
+    Returns:
+        The written PNG path. Missing 2D points are drawn as red crosses; the
+        reconstruction is globally rotated onto the ground truth for display.
+    """
+    from nrsfm.io import atomic_write
+
+    plt = _pyplot()
+    if frames is None:
+        frames = sorted(set(np.linspace(0, seq.n_frames - 1, min(4, seq.n_frames)).astype(int).tolist()))
+    cols = ["2D input"]
+    rec = None
+    if points_3d is not None:
+        rec = points_3d
+        if seq.points_3d is not None:
+            rec = _align_for_display(points_3d, seq.points_3d)
+        cols.append("reconstruction")
+    if seq.points_3d is not None:
+        cols.append("ground truth")
+    fig = plt.figure(figsize=(3.2 * len(cols), 3.0 * len(frames)))
+    edges = None if seq.edges is None else seq.edges.tolist()
+    for r, f in enumerate(frames):
+        ax = fig.add_subplot(len(frames), len(cols), r * len(cols) + 1)
+        _draw(ax, seq.points_2d[f], edges, three_d=False, colour="tab:blue",
+              vis=None if seq.visibility is None else seq.visibility[f])
+        ax.set_title(f"frame {f}: {cols[0]}", fontsize=8)
+        c = 2
+        for label, data, colour in (("reconstruction", rec, "tab:orange"), ("ground truth", seq.points_3d, "k")):
+            if data is None:
+                continue
+            ax = fig.add_subplot(len(frames), len(cols), r * len(cols) + c, projection="3d")
+            _draw(ax, data[f] - data[f].mean(axis=0), edges, three_d=True, colour=colour)
+            ax.set_title(label, fontsize=8)
+            ax.tick_params(labelsize=5)
+            c += 1
+    fig.suptitle(title or seq.name, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_write(path, overwrite=overwrite) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path
+
+
+def plot_error_curve(curves: dict[str, np.ndarray], path: str | os.PathLike, *, ylabel: str = "error",
+                     title: str = "", overwrite: bool = True) -> Path:
+    """Per-frame error curves, one line per entry of ``curves`` (`(F,)` arrays)."""
+    from nrsfm.io import atomic_write
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3))
+    for label, values in curves.items():
+        ax.plot(np.asarray(values), label=f"{label} (mean {np.mean(values):.4g})", lw=1)
+    ax.set_xlabel("frame")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_write(path, overwrite=overwrite) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path

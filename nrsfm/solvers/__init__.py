@@ -1,0 +1,23 @@
+"""NRSfM solvers behind one registry.
+
+>>> from nrsfm.solvers import get_solver
+>>> spec = get_solver("rank3")
+>>> rec = spec.solve(seq, spec.params())  # doctest: +SKIP
+"""
+
+from nrsfm.solvers.base import (Reconstruction, SolverSpec, available_solvers, get_solver, params_from_strings,
+                                register)
+from nrsfm.solvers import rank3 as _rank3  # noqa: F401  (registers "rank3")
+from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
+
+
+def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstruction:
+    """Solve ``seq`` with the registered ``method``; keyword overrides build its params."""
+    spec = get_solver(method)
+    if params is None:
+        params = spec.params(**overrides)
+    return spec.solve(seq, params)
+
+
+__all__ = ["Reconstruction", "SolverSpec", "available_solvers", "get_solver", "params_from_strings", "register",
+           "solve", "Rank3Params", "solve_rank3"]

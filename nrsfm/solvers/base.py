@@ -1,0 +1,189 @@
+"""The solver interface: a registry of ``solve(seq, params) -> Reconstruction`` functions.
+
+Each solver is a plain function taking a :class:`~nrsfm.sequence.Sequence`
+and a frozen parameter dataclass (validated in ``__post_init__``) and
+returning a :class:`Reconstruction`. The CLI and the benchmarks only look
+solvers up by name (:func:`get_solver`), and parameters can be overridden
+from strings (``--set K=12``) through :func:`params_from_strings`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nrsfm.errors import SolverError, ValidationError, shape_error
+from nrsfm.sequence import Sequence
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """What every solver returns.
+
+    Attributes:
+        points_3d: `(F, P, 3)` reconstructed shapes in the camera frame,
+            centred per frame (orthographic depth is known up to a global sign).
+        rotations: `(F, 3, 3)` camera rotations, ``points_3d[f].T = R_f S_f``
+            with ``S_f`` the shape in the solver's object frame; None when the
+            method has no notion of cameras.
+        method: registry name; params: the parameters used, as a dict.
+        iterations, converged, runtime_s, seed: run information.
+        info: further method-specific numbers (final cost, chosen K, ...).
+    """
+
+    points_3d: np.ndarray
+    rotations: np.ndarray | None
+    method: str
+    params: dict[str, Any] = field(default_factory=dict)
+    iterations: int = 0
+    converged: bool = True
+    runtime_s: float = 0.0
+    seed: int | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        x = np.asarray(self.points_3d, dtype=np.float64)
+        if x.ndim != 3 or x.shape[2] != 3:
+            raise shape_error("Reconstruction.points_3d", "(F, P, 3)", x.shape)
+        if not np.isfinite(x).all():
+            raise SolverError(f"{self.method}: the solver produced NaN/inf shapes; this is a bug, please report it "
+                              "with the input file")
+        object.__setattr__(self, "points_3d", x)
+        if self.rotations is not None:
+            r = np.asarray(self.rotations, dtype=np.float64)
+            if r.shape != (x.shape[0], 3, 3):
+                raise shape_error("Reconstruction.rotations", f"(F, 3, 3) with F = {x.shape[0]}", r.shape)
+            object.__setattr__(self, "rotations", r)
+
+    @property
+    def shapes_object(self) -> np.ndarray:
+        """`(F, P, 3)` shapes in the solver's object frame (``R^T X``)."""
+        if self.rotations is None:
+            raise ValidationError(f"{self.method}: this reconstruction has no camera rotations")
+        return np.einsum("fpi,fij->fpj", self.points_3d, self.rotations)
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write as `.npz` (no pickles), atomically; never overwrites unless asked."""
+        import json
+
+        from nrsfm.io import atomic_write
+
+        arrays = {"points_3d": self.points_3d, "method": np.array(self.method),
+                  "run": np.array(json.dumps({"params": self.params, "iterations": self.iterations,
+                                              "converged": self.converged, "runtime_s": self.runtime_s,
+                                              "seed": self.seed, "info": self.info}, default=str))}
+        if self.rotations is not None:
+            arrays["rotations"] = self.rotations
+        path = Path(path)
+        with atomic_write(path, overwrite=overwrite) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+        return path
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """A registry entry."""
+
+    name: str
+    solve: Callable[[Sequence, Any], Reconstruction]
+    params: type
+    description: str
+    handles_missing: bool
+    handles_perspective: bool
+
+
+_REGISTRY: dict[str, SolverSpec] = {}
+
+
+def register(name: str, params: type, description: str, *, handles_missing: bool = False,
+             handles_perspective: bool = False):
+    """Decorator adding ``solve(seq, params)`` to the registry under ``name``.
+
+    The wrapped function gets the input checks every solver shares (missing
+    points, projection model) and the run time recorded.
+    """
+
+    def deco(fn: Callable[[Sequence, Any], Reconstruction]):
+        def solve(seq: Sequence, params: Any = None) -> Reconstruction:
+            if not isinstance(seq, Sequence):
+                raise ValidationError(f"seq: expected an nrsfm.Sequence, got {type(seq).__name__}")
+            params = params_cls() if params is None else params
+            if not isinstance(params, params_cls):
+                raise ValidationError(f"params: expected {params_cls.__name__}, got {type(params).__name__}")
+            if not handles_missing and not seq.is_complete:
+                raise SolverError(f"{name}: expected complete tracks, got {seq.missing_fraction:.1%} missing "
+                                  f"entries in '{seq.name}'; use a solver that handles missing points "
+                                  f"({', '.join(n for n, s in _REGISTRY.items() if s.handles_missing) or 'none yet'})")
+            if seq.n_frames < 2:
+                raise SolverError(f"{name}: expected at least 2 frames, got {seq.n_frames}")
+            t0 = time.perf_counter()
+            rec = fn(seq, params)
+            return dataclasses.replace(rec, runtime_s=time.perf_counter() - t0,
+                                       params=dataclasses.asdict(params))
+
+        params_cls = params
+        solve.__name__ = fn.__name__
+        solve.__doc__ = fn.__doc__
+        solve.__wrapped__ = fn
+        _REGISTRY[name] = SolverSpec(name, solve, params, description, handles_missing, handles_perspective)
+        return solve
+
+    return deco
+
+
+def available_solvers() -> list[str]:
+    """Registered solver names."""
+    return list(_REGISTRY)
+
+
+def get_solver(name: str) -> SolverSpec:
+    """Look a solver up by name; unknown names raise with the list of known ones."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ValidationError(f"method: expected one of {available_solvers()}, got {name!r}") from None
+
+
+def params_from_strings(params_cls: type, assignments: list[str] | None) -> Any:
+    """Build ``params_cls`` from ``["K=12", "tol=1e-6"]`` strings, coercing to the field types."""
+    fields = {f.name: f for f in dataclasses.fields(params_cls)}
+    hints = typing.get_type_hints(params_cls)
+    values: dict[str, Any] = {}
+    for item in assignments or []:
+        if "=" not in item:
+            raise ValidationError(f"--set: expected NAME=VALUE, got {item!r}")
+        key, raw = (s.strip() for s in item.split("=", 1))
+        if key not in fields:
+            raise ValidationError(f"--set: {params_cls.__name__} has no parameter {key!r}; known: {sorted(fields)}")
+        values[key] = _coerce(key, raw, hints[key])
+    return params_cls(**values)
+
+
+def _coerce(key: str, raw: str, hint: Any) -> Any:
+    args = typing.get_args(hint)
+    kinds = [a for a in args if a is not type(None)] if args else [hint]
+    if raw.lower() in ("none", "null", "auto") and type(None) in args:
+        return None
+    for kind in kinds:
+        try:
+            if kind is bool:
+                if raw.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if raw.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError(raw)
+            if kind in (int, float, str):
+                return kind(raw)
+        except ValueError:
+            continue
+    raise ValidationError(f"--set {key}: expected {' or '.join(getattr(k, '__name__', str(k)) for k in kinds)}, "
+                          f"got {raw!r}")

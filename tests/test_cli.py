@@ -1,0 +1,112 @@
+import json
+
+import numpy as np
+import pytest
+
+from nrsfm.cli import main
+from nrsfm.datasets.synthetic import lowrank_sequence
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_solve_rigid_synthetic_json(tmp_path, capsys):
+    path = lowrank_sequence(80, 20, 1, seed=3).save(tmp_path / "rigid.npz")
+    code, out, err = _run(capsys, "solve", str(path), "--method", "rank3", "--json",
+                          "--out", str(tmp_path / "rec.npz"), "--plot", str(tmp_path / "rec.png"))
+    assert code == 0, err
+    res = json.loads(out)
+    for key in ("method", "frames", "points", "runtime_s", "metrics"):
+        assert key in res
+    assert res["frames"] == 80 and res["points"] == 20 and res["method"] == "rank3"
+    assert set(res["metrics"]) >= {"e3d", "normalized_error", "mpjpe"}
+    assert res["metrics"]["e3d"] < 1e-6
+    assert (tmp_path / "rec.png").stat().st_size > 1000
+    with np.load(tmp_path / "rec.npz", allow_pickle=False) as rec:
+        assert rec["points_3d"].shape == (80, 20, 3)
+
+
+def test_solve_text_output_and_set(tmp_path, capsys):
+    path = lowrank_sequence(30, 10, 1, seed=3).save(tmp_path / "rigid.npz")
+    code, out, _ = _run(capsys, "solve", str(path), "--set", "min_eigenvalue=1e-6")
+    assert code == 0 and "e3D (camera frame)" in out and "normalised error" in out
+
+
+def _one_line_error(code, err, pattern):
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert pattern in lines[0], lines[0]
+
+
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys):
+    _one_line_error(*_run(capsys, "solve", str(tmp_path / "missing.npz"))[::2], "no such file")
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, points_2d=np.zeros((2, 5, 17)))
+    _one_line_error(*_run(capsys, "info", str(bad))[::2], "points_2d: expected (F, P, 2)")
+    nan = tmp_path / "nan.npz"
+    p2 = np.zeros((3, 4, 2))
+    p2[1, 1, 0] = np.nan
+    np.savez(nan, points_2d=p2)
+    _one_line_error(*_run(capsys, "solve", str(nan))[::2], "NaN")
+    good = lowrank_sequence(10, 6, 1).save(tmp_path / "good.npz")
+    _one_line_error(*_run(capsys, "solve", str(good), "--method", "nope")[::2], "method: expected one of")
+    _one_line_error(*_run(capsys, "solve", str(good), "--set", "K=2")[::2], "no parameter 'K'")
+    _one_line_error(*_run(capsys, "frobnicate")[::2], "invalid choice")
+    txt = tmp_path / "x.txt"
+    txt.write_text("hello")
+    _one_line_error(*_run(capsys, "info", str(txt))[::2], "expected a .npz sequence or a CMU NRSfM .mat")
+    notzip = tmp_path / "notzip.npz"
+    notzip.write_text("hello")
+    _one_line_error(*_run(capsys, "info", str(notzip))[::2], "expected an .npz archive")
+    missing = lowrank_sequence(10, 6, 1, missing=0.3, seed=2).save(tmp_path / "missing.npz")
+    _one_line_error(*_run(capsys, "solve", str(missing))[::2], "expected complete tracks")
+
+
+def test_outputs_are_never_overwritten_without_force(tmp_path, capsys):
+    good = lowrank_sequence(10, 6, 1).save(tmp_path / "good.npz")
+    out = tmp_path / "rec.npz"
+    out.write_bytes(b"user data")
+    _one_line_error(*_run(capsys, "solve", str(good), "--out", str(out))[::2], "--force")
+    assert out.read_bytes() == b"user data"
+    code, _, err = _run(capsys, "solve", str(good), "--out", str(out), "--force")
+    assert code == 0, err and out.read_bytes() != b"user data"
+    conv = tmp_path / "conv.npz"
+    conv.write_bytes(b"mine")
+    _one_line_error(*_run(capsys, "convert", str(good), str(conv))[::2], "--force")
+    assert conv.read_bytes() == b"mine"
+
+
+def test_info_json_and_synth(tmp_path, capsys):
+    for kind in ("rigid", "lowrank", "human", "face", "surface"):
+        out = tmp_path / f"{kind}.npz"
+        code, _, err = _run(capsys, "synth", kind, str(out), "--frames", "12")
+        assert code == 0, err
+        code, text, _ = _run(capsys, "info", str(out), "--json")
+        info = json.loads(text)
+        assert info["frames"] == 12 and info["ground_truth"] is True and info["valid"] is True
+
+
+def test_methods_and_demo(tmp_path, capsys):
+    code, out, _ = _run(capsys, "methods")
+    assert code == 0 and "rank3" in out
+    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"))
+    assert code == 0, err
+    assert "| rigid | 200 x 30 | rank3 |" in out
+    assert any(p.suffix == ".png" for p in (tmp_path / "demo").iterdir())
+    _one_line_error(*_run(capsys, "demo", "--out", str(tmp_path / "demo"))[::2], "not empty")
+
+
+def test_console_script_entry_point():
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "nrsfm.cli", "methods"], capture_output=True, text=True)
+    assert res.returncode == 0 and "rank3" in res.stdout
+    res = subprocess.run([sys.executable, "-m", "nrsfm.cli", "solve", "/nonexistent.npz"], capture_output=True,
+                         text=True)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "Traceback" not in res.stderr

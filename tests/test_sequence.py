@@ -1,0 +1,90 @@
+import numpy as np
+import pytest
+
+from nrsfm import Sequence, ValidationError
+from nrsfm.datasets.synthetic import lowrank_sequence
+
+
+def test_valid_sequence_is_frozen_and_read_only(rng):
+    seq = Sequence(points_2d=rng.standard_normal((5, 4, 2)))
+    assert (seq.n_frames, seq.n_points) == (5, 4)
+    with pytest.raises(Exception):
+        seq.name = "x"
+    with pytest.raises(ValueError):
+        seq.points_2d[0, 0, 0] = 1.0
+
+
+@pytest.mark.parametrize("shape, hint", [((2, 17, 120), "3 x P x F"), ((3, 17, 120), "3 x P x F"),
+                                         ((240, 17), "2F x P"), ((10, 2, 17), "channel-first")])
+def test_wrong_layout_names_field_shapes_and_hint(shape, hint):
+    with pytest.raises(ValidationError, match=rf"points_2d: expected \(F, P, 2\), got .*{shape[0]}.*{hint}"):
+        Sequence(points_2d=np.zeros(shape))
+
+
+def test_nan_at_visible_point_raises_and_is_allowed_when_missing(rng):
+    p2 = rng.standard_normal((4, 3, 2))
+    p2[1, 2] = np.nan
+    with pytest.raises(ValidationError, match="frame 1, point 2.*visibility = 0"):
+        Sequence(points_2d=p2)
+    vis = np.ones((4, 3))
+    vis[1, 2] = 0
+    seq = Sequence(points_2d=p2, visibility=vis)
+    assert np.isfinite(seq.points_2d).all() and seq.points_2d[1, 2, 0] == 0
+    assert seq.missing_fraction == pytest.approx(1 / 12)
+    assert not seq.is_complete
+
+
+def test_visibility_and_ground_truth_shapes_are_checked(rng):
+    p2 = rng.standard_normal((4, 3, 2))
+    with pytest.raises(ValidationError, match=r"visibility: expected \(F, P\) = \(4, 3\), got \(3, 4\)"):
+        Sequence(points_2d=p2, visibility=np.ones((3, 4)))
+    with pytest.raises(ValidationError, match=r"visibility: expected values in \[0, 1\]"):
+        Sequence(points_2d=p2, visibility=np.full((4, 3), 2.0))
+    with pytest.raises(ValidationError, match=r"points_3d: expected \(F, P, 3\)"):
+        Sequence(points_2d=p2, points_3d=np.zeros((4, 3, 2)))
+    with pytest.raises(ValidationError, match="projection"):
+        Sequence(points_2d=p2, projection="fisheye")
+    with pytest.raises(ValidationError, match="1-based"):
+        Sequence(points_2d=p2, edges=np.array([[1, 3]]))
+    with pytest.raises(ValidationError, match="joint_names"):
+        Sequence(points_2d=p2, joint_names=("a", "b"))
+
+
+def test_save_load_roundtrip_without_pickle(tmp_path):
+    seq = lowrank_sequence(20, 8, 2, missing=0.2, seed=3).replace(
+        edges=np.array([[0, 1], [1, 2]]), joint_names=tuple("abcdefgh"), fps=25.0, meta={"k": "v"})
+    path = seq.save(tmp_path / "s.npz")
+    with np.load(path, allow_pickle=False) as data:  # loads without pickle
+        assert "points_2d" in data.files
+    back = Sequence.load(path)
+    for key in ("points_2d", "visibility", "points_3d", "camera_rotations", "edges"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(seq, key))
+    assert back.joint_names == seq.joint_names and back.fps == 25.0 and back.meta["k"] == "v"
+    assert back.name == seq.name
+
+
+def test_save_never_overwrites_without_permission(tmp_path):
+    seq = lowrank_sequence(5, 4, 1)
+    path = seq.save(tmp_path / "s.npz")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="--force"):
+        lowrank_sequence(6, 4, 1).save(path)
+    assert path.read_bytes() == before
+    lowrank_sequence(6, 4, 1).save(path, overwrite=True)
+    assert Sequence.load(path).n_frames == 6
+
+
+def test_measurement_matrix_interleaves_rows(rng):
+    p2 = rng.standard_normal((3, 5, 2))
+    w = Sequence(points_2d=p2).measurement_matrix()
+    assert w.shape == (6, 5)
+    np.testing.assert_array_equal(w[2], p2[1, :, 0])
+    np.testing.assert_array_equal(w[3], p2[1, :, 1])
+
+
+def test_select_frames_keeps_all_fields():
+    seq = lowrank_sequence(10, 5, 2, missing=0.1, seed=1)
+    sub = seq.select_frames(slice(2, 6))
+    assert sub.n_frames == 4
+    np.testing.assert_array_equal(sub.points_3d, seq.points_3d[2:6])
+    np.testing.assert_array_equal(sub.camera_rotations, seq.camera_rotations[2:6])

@@ -1,0 +1,83 @@
+import numpy as np
+import pytest
+
+from nrsfm.datasets import h36m
+from nrsfm.datasets.synthetic import (MOTIONS, face_sequences, human_motion, human_sequences, lowrank_sequence,
+                                      surface_sequence)
+from nrsfm.geometry import project_perspective
+
+
+def test_lowrank_is_deterministic_and_low_rank():
+    a = lowrank_sequence(40, 12, 3, seed=7)
+    b = lowrank_sequence(40, 12, 3, seed=7)
+    np.testing.assert_array_equal(a.points_2d, b.points_2d)
+    assert not np.array_equal(a.points_2d, lowrank_sequence(40, 12, 3, seed=8).points_2d)
+    obj = np.einsum("fpi,fij->fpj", a.points_3d, a.camera_rotations)  # object frame
+    sv = np.linalg.svd(obj.reshape(40, -1), compute_uv=False)
+    assert sv[3] < 1e-10 * sv[0] and sv[2] > 1e-3 * sv[0]  # rank exactly 3
+    np.testing.assert_allclose(a.points_3d[..., :2], a.points_2d)
+
+
+def test_lowrank_noise_and_missing():
+    seq = lowrank_sequence(50, 20, 2, noise=0.01, missing=0.2, seed=1)
+    assert 0.15 < seq.missing_fraction < 0.25
+    vis = seq.visibility > 0
+    err = np.abs(seq.points_3d[..., :2] - seq.points_2d)[vis]
+    assert 0.003 < err.mean() < 0.02
+
+
+def test_human_bones_are_rigid_per_subject_and_differ_between_subjects():
+    def bones(subject, motion):
+        pos = human_motion(subject, motion, 60, seed=0)
+        return np.stack([np.linalg.norm(pos[:, j] - pos[:, p], axis=1) for j, p in enumerate(h36m.PARENTS) if p >= 0],
+                        axis=1)  # (F, 16)
+
+    for motion in MOTIONS:
+        b = bones("S1", motion)
+        np.testing.assert_allclose(b, np.broadcast_to(b[0], b.shape), rtol=1e-9)
+    np.testing.assert_allclose(bones("S1", "walking")[0], bones("S1", "bending")[0])
+    assert np.abs(bones("S1", "walking")[0] - bones("S9", "walking")[0]).max() > 5.0  # mm
+
+
+def test_human_cameras_views_and_projection():
+    seqs = human_sequences(("S9",), ("walking", "sitting_down"), n_frames=30, projection="perspective")
+    assert len(seqs) == 8 and {s.meta["camera"] for s in seqs} == {"1", "2", "3", "4"}
+    for s in seqs:
+        assert s.points_3d[..., 2].min() > 2000  # in front of every camera, mm
+        np.testing.assert_allclose(s.points_2d, project_perspective(s.points_3d, s.intrinsics), atol=1e-9)
+        assert s.joint_names == h36m.JOINT_NAMES and s.edges.shape == (16, 2)
+        assert (s.points_2d > -500).all() and (s.points_2d < 1500).all()  # roughly inside a 1000 px image
+    # the same motion seen by two cameras: same world pose, different camera frames
+    a, b = seqs[0], seqs[1]
+    assert not np.allclose(a.points_3d, b.points_3d)
+    ortho = human_sequences(("S9",), ("walking",), (1,), n_frames=30, noise=5.0, missing=0.1)[0]
+    assert ortho.projection == "orthographic" and 0.05 < ortho.missing_fraction < 0.15
+    vis = ortho.visibility > 0
+    assert 2.0 < np.abs(ortho.points_2d - ortho.points_3d[..., :2])[vis].mean() < 10.0
+
+
+def test_motion_families_move_differently():
+    poses = {m: human_motion("S1", m, 80, seed=0) for m in MOTIONS}
+    centred = {m: p - p[:, :1] for m, p in poses.items()}
+    sitting = centred["sitting_down"]
+    # sitting down brings the hips towards the knees' height at some point
+    assert (sitting[:, 2, 1] - sitting[:, 0, 1]).max() > -250
+    for m in MOTIONS:
+        assert np.ptp(centred[m], axis=0).max() > 100, m  # every family has real articulation
+
+
+def test_faces_and_surfaces():
+    faces = face_sequences(2, 50, seed=0)
+    assert faces[0].n_points == 68 and faces[0].edges is not None
+    assert not np.allclose(faces[0].points_3d[0], faces[1].points_3d[0])
+    np.testing.assert_allclose(faces[0].points_3d[..., :2], faces[0].points_2d)
+    surf = surface_sequence(10)
+    assert surf.n_points >= 3000
+    np.testing.assert_allclose(surf.points_3d[..., :2], surf.points_2d)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="missing"):
+        lowrank_sequence(10, 5, 1, missing=1.5)
+    with pytest.raises(ValueError, match="motion"):
+        human_motion("S1", "dancing")
