@@ -1,0 +1,206 @@
+"""Generalised Procrustes alignment (no scale) and its analytic gradient.
+
+This module is the one home of the alignment used by the classical PR solver
+(:mod:`nrsfm.solvers.pr`) and by the PRN loss (:mod:`prn.loss`).
+
+Model (PRN paper eq. 4): for shapes ``X_i`` `(3, P)`, ``i = 1..n``, with
+centred versions ``Y_i = X_i T``, find proper rotations ``R_i`` minimising
+``sum_i ||R_i Y_i - mean_j R_j Y_j||^2``; the aligned shapes are
+``Z_i = R_i Y_i``.
+
+Gradient (PRN eq. 5-11, derived here in an equivalent matrix-free form): at
+the optimum every ``Z_i M^T`` is symmetric, with ``M = sum_j Z_j``. A
+perturbation ``dY_i`` (written in the aligned frame, ``dY'_i = R_i dY_i``)
+moves the rotations by infinitesimal rotations ``w_i`` solving ``J w = -K
+dY'`` where ``J`` `(3n, 3n)` and ``K`` are the derivatives of the
+stationarity conditions ``v(Z_i M^T) = 0`` (``v(A) = vee(A - A^T)``). ``J``
+is singular along a common rotation of all shapes (the gauge; the paper's
+matrix B): we add ``E^T E`` with ``E = [I3 ... I3]``, which fixes
+``sum_i w_i = 0`` and leaves the solution of the consistent system
+unchanged. For an upstream gradient ``G_i = dL/dZ_i`` the vector-Jacobian
+product is::
+
+    h_i  = v(G_i Z_i^T)                      (3n,)
+    mu   = (J + E^T E)^{-T} h
+    dL/dY'_j = G_j - ([mu_j]_x M - sum_i [mu_i]_x Z_i)
+    dL/dX_j  = R_j^T dL/dY'_j  T             (T removes the centroid)
+
+Nothing of size ``3nP x 3nP`` is ever formed: ``J`` is `(3n, 3n)` per group
+and everything else is batched products. Shapes carry a leading batch
+(group) dimension ``B``: ``X`` is `(B, n, 3, P)`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_EPS_CACHE: dict = {}
+
+
+def _torch():
+    import torch
+
+    return torch
+
+
+def _levi_civita(like):
+    torch = _torch()
+    key = (like.dtype, like.device)
+    if key not in _EPS_CACHE:
+        eps = torch.zeros(3, 3, 3, dtype=like.dtype, device=like.device)
+        for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+            eps[a, b, c] = 1.0
+            eps[b, a, c] = -1.0
+        _EPS_CACHE[key] = eps
+    return _EPS_CACHE[key]
+
+
+def skew(w):
+    """`(..., 3)` vectors -> `(..., 3, 3)` cross-product matrices ``[w]_x``."""
+    torch = _torch()
+    z = torch.zeros_like(w[..., 0])
+    return torch.stack([torch.stack([z, -w[..., 2], w[..., 1]], -1),
+                        torch.stack([w[..., 2], z, -w[..., 0]], -1),
+                        torch.stack([-w[..., 1], w[..., 0], z], -1)], -2)
+
+
+def vee_antisym(a):
+    """``v(A) = vee(A - A^T)`` for `(..., 3, 3)` A; ``w . v(A) = <[w]_x, A>``."""
+    torch = _torch()
+    return torch.stack([a[..., 2, 1] - a[..., 1, 2], a[..., 0, 2] - a[..., 2, 0], a[..., 1, 0] - a[..., 0, 1]], -1)
+
+
+@dataclass
+class Alignment:
+    """Result of :func:`align`.
+
+    Attributes:
+        aligned: `(B, n, 3, P)` aligned centred shapes ``Z_i = R_i Y_i``.
+        rotations: `(B, n, 3, 3)` proper rotations ``R_i``.
+        centred: `(B, n, 3, P)` centred inputs ``Y_i``.
+        iterations: alignment sweeps run; converged: whether the rotation
+            change fell below the tolerance.
+    """
+
+    aligned: object
+    rotations: object
+    centred: object
+    iterations: int
+    converged: bool
+
+
+def _proper_procrustes(target, source):
+    """Rotations `(..., 3, 3)` with det +1 maximising ``tr(R source target^T)``."""
+    torch = _torch()
+    h = target @ source.transpose(-1, -2)  # (..., 3, 3)
+    u, _, vt = torch.linalg.svd(h)
+    d = torch.sign(torch.linalg.det(u @ vt))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    u = torch.cat([u[..., :2], u[..., 2:] * d[..., None, None]], dim=-1)
+    return u @ vt
+
+
+def align(x, *, tol: float | None = None, max_iter: int = 200, init=None) -> Alignment:
+    """Generalised Procrustes alignment without scale to the mean of the aligned shapes.
+
+    Args:
+        x: `(B, n, 3, P)` shapes (torch tensor; any float dtype/device).
+        tol: stop when the largest rotation change (Frobenius) is below this
+            (default 1e-10 for float64, 1e-5 for float32).
+        max_iter: sweeps at most.
+        init: optional `(B, n, 3, 3)` starting rotations (warm start).
+
+    Returns:
+        :class:`Alignment`. The gauge (a common rotation) is fixed by making
+        the mean shape's rotation to the first shape's frame the identity at
+        the start; it does not affect rotation-invariant losses.
+    """
+    torch = _torch()
+    if tol is None:
+        tol = 1e-10 if x.dtype == torch.float64 else 1e-5
+    with torch.no_grad():
+        y = x - x.mean(dim=-1, keepdim=True)
+        if init is None:
+            rot = _proper_procrustes(y[:, :1], y)  # align every shape to the first
+        else:
+            rot = init
+        converged = False
+        it = 0
+        for it in range(1, max_iter + 1):
+            mean = (rot @ y).mean(dim=1, keepdim=True)  # (B, 1, 3, P)
+            new = _proper_procrustes(mean, y)
+            change = (new - rot).flatten(-2).norm(dim=-1).max()
+            rot = new
+            if change < tol:
+                converged = True
+                break
+        return Alignment(aligned=rot @ y, rotations=rot, centred=y, iterations=it, converged=converged)
+
+
+def stationarity_jacobian(z):
+    """The gauge-fixed `(B, 3n, 3n)` matrix ``J + E^T E`` for aligned shapes ``z`` `(B, n, 3, P)`.
+
+    ``J w`` is the change of the stationarity conditions ``v(Z_i M^T)`` under
+    infinitesimal rotations ``Z_i -> (I + [w_i]_x) Z_i``.
+    """
+    torch = _torch()
+    eps = _levi_civita(z)
+    b, n = z.shape[:2]
+    m = z.sum(dim=1)  # (B, 3, P)
+    k = z @ m.unsqueeze(1).transpose(-1, -2)  # (B, n, 3, 3)  K_i = Z_i M^T
+    # v([w] K)_c = eps_abc eps_ade K_db w_e
+    diag = torch.einsum("abc,ade,xndb->xnce", eps, eps, k)  # (B, n, 3, 3)
+    # v(Z_i ([w_j] Z_j)^T)_c = -eps_abc eps_dbe (Z_i Z_j^T)_ad w_e
+    c = torch.einsum("xiap,xjdp->xijad", z, z)  # (B, n, n, 3, 3)
+    coup = -torch.einsum("abc,dbe,xijad->xijce", eps, eps, c)  # (B, n, n, 3, 3)
+    jac = coup + torch.diag_embed(torch.ones(n, dtype=z.dtype, device=z.device))[None, :, :, None, None] * diag[:, :, None]
+    jac = jac + torch.eye(3, dtype=z.dtype, device=z.device)  # + E^T E: every block gets I3
+    return jac.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
+
+
+def align_vjp(grad_aligned, al: Alignment):
+    """Backpropagate ``dL/dZ`` `(B, n, 3, P)` through the alignment to ``dL/dX`` `(B, n, 3, P)`.
+
+    Exact at a converged alignment (see the module docstring).
+    """
+    torch = _torch()
+    z, rot = al.aligned, al.rotations
+    b, n = z.shape[:2]
+    h = vee_antisym(grad_aligned @ z.transpose(-1, -2))  # (B, n, 3)
+    jac = stationarity_jacobian(z)  # (B, 3n, 3n)
+    mu = torch.linalg.solve(jac.transpose(-1, -2), h.reshape(b, 3 * n, 1)).reshape(b, n, 3)
+    m = z.sum(dim=1, keepdim=True)  # (B, 1, 3, P)
+    smu = skew(mu)  # (B, n, 3, 3)
+    coupling = (smu @ z).sum(dim=1, keepdim=True)  # (B, 1, 3, P)
+    g_prime = grad_aligned - (smu @ m - coupling)  # dL/dY' (B, n, 3, P)
+    g = rot.transpose(-1, -2) @ g_prime  # dL/dY
+    return g - g.mean(dim=-1, keepdim=True)  # T (centring) is symmetric
+
+
+def nuclear_norm_and_subgradient(z):
+    """``||Z~||_*`` and ``U sign(S) V^T`` for ``Z~ = [vec(Z_1) ... vec(Z_n)]`` `(3P, n)`.
+
+    Args:
+        z: `(B, n, 3, P)`.
+
+    Returns:
+        `(B,)` nuclear norms and the `(B, n, 3, P)` subgradient (computed
+        explicitly from the SVD; nothing is backpropagated through it).
+    """
+    torch = _torch()
+    b, n = z.shape[:2]
+    mat = z.reshape(b, n, -1).transpose(1, 2)  # (B, 3P, n), columns vec(Z_i) (row-major vec; norm is unchanged)
+    u, s, vt = torch.linalg.svd(mat, full_matrices=False)
+    tol = s.amax(dim=-1, keepdim=True) * max(mat.shape[-2:]) * torch.finfo(z.dtype).eps
+    sign = (s > tol).to(z.dtype)
+    sub = (u * sign.unsqueeze(-2)) @ vt  # (B, 3P, n)
+    return s.sum(dim=-1), sub.transpose(1, 2).reshape(z.shape)
+
+
+def numpy_align(x: np.ndarray, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy convenience: `(n, 3, P)` shapes -> aligned `(n, 3, P)` and rotations `(n, 3, 3)`."""
+    torch = _torch()
+    al = align(torch.as_tensor(x, dtype=torch.float64)[None], **kwargs)
+    return al.aligned[0].numpy(), al.rotations[0].numpy()
