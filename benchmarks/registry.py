@@ -1,0 +1,102 @@
+"""Learned methods of the Human3.6M-style tables, as registry entries.
+
+A method is a function ``run(split, ctx) -> list of (F, P, 3)`` normalised
+predictions for ``split.test_inputs`` (scaled back to millimetres by the
+harness with the PRN protocol). Baselines become table rows by calling
+:func:`register_method`; the table code never changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import config_hash
+from nrsfm.errors import ValidationError
+from nrsfm.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Split:
+    """Train / test data of one input type.
+
+    Attributes:
+        train_inputs / train_targets: network inputs and the 2D the data term
+            compares with (the same sequences unless e.g. SH inputs with GT 2D).
+        test_inputs: test 2D; test_truth: the same frames with ``points_3d``.
+        input_type: ``gt-ortho``, ``gt-persp`` or ``sh``; sampling: group sampling.
+        tag: identifies the data (part of every cache key).
+    """
+
+    train_inputs: list[Sequence]
+    train_targets: list[Sequence]
+    test_inputs: list[Sequence]
+    test_truth: list[Sequence]
+    input_type: str
+    sampling: str = "multiview"
+    tag: str = ""
+
+
+@dataclass
+class RunContext:
+    """Options of one harness run: output folder (caches), iterations, seed, progress bars."""
+
+    out_dir: Path
+    iterations: int
+    seed: int = 0
+    progress: bool = True
+    device: str = "auto"
+    timings: dict = field(default_factory=dict)
+
+    def cache_dir(self, method: str, config: dict) -> Path:
+        return self.out_dir / "cache" / f"{method.replace(' ', '_').replace('/', '_')}-{config_hash(config)}"
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    run: Callable[[Split, RunContext], list[np.ndarray]]
+    inputs: tuple[str, ...]
+    description: str
+
+
+_METHODS: dict[str, Method] = {}
+
+
+def register_method(name: str, inputs: tuple[str, ...], description: str):
+    """Decorator registering ``run(split, ctx)`` as a table row named ``name``."""
+
+    def deco(fn):
+        _METHODS[name] = Method(name, fn, inputs, description)
+        return fn
+
+    return deco
+
+
+def methods() -> dict[str, Method]:
+    import benchmarks.methods  # noqa: F401  (registers the built-in rows)
+
+    return dict(_METHODS)
+
+
+def get_method(name: str) -> Method:
+    m = methods()
+    if name not in m:
+        raise ValidationError(f"method: expected one of {list(m)}, got {name!r}")
+    return m[name]
+
+
+def scaled_schedule(iterations: int, **overrides):
+    """The paper's TrainConfig with the lr step compressed proportionally to ``iterations`` (70k = paper)."""
+    from prn.train import TrainConfig
+
+    step = max(1, round(5000 * iterations / 70_000))
+    return dataclasses.replace(TrainConfig(), iterations=iterations, lr_step=step,
+                               checkpoint_every=max(100, iterations // 20), **overrides)

@@ -1,0 +1,299 @@
+"""PRN paper, Table 1: MPJPE (mm) on Human3.6M from 2D inputs, per action.
+
+    python -m benchmarks.table1 [--data synthetic|h36m] [--root DIR] [--input gt-ortho|gt-persp|sh|all]
+                                [--quick] [--out DIR] [--iterations N] [--methods NAME,NAME] [--stride auto|1|5]
+
+Protocol (PRN official test code, see nrsfm.metrics.mpjpe_prn): train on S1,
+S5, S6, S7, S8 and test on S9 and S11 (whichever are present; the output
+says which), 10 fps, 17 joints; inputs and outputs normalised per frame by
+the xy Frobenius norm and scaled back by the ground truth's; shapes centred
+on the joints' mean; z sign chosen per frame; no Procrustes. Per action the
+frame-weighted mean over subjects, cameras and sub-actions; "Avg" the
+frame-weighted mean over all test frames.
+
+With no arguments it runs on the embedded synthetic stand-in (articulated
+humans, 4 ring cameras, subjects S1-S11, six motion families); its numbers
+are not comparable with the paper's, which are printed beside them for
+orientation only. Trained models are cached under ``<out>/cache`` by
+configuration, so a rerun evaluates without retraining.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.registry import RunContext, Split, methods
+from nrsfm.datasets import h36m
+from nrsfm.errors import NRSfMError, ValidationError
+from nrsfm.metrics import mpjpe_prn_per_frame
+
+log = logging.getLogger("benchmarks.table1")
+
+#: Paper column order and the Human3.6M action of each column.
+PAPER_COLUMNS = ("Directions", "Discussion", "Eating", "Greeting", "Phoning", "Posing", "Purchases", "Sitting",
+                 "SittingDown", "Smoking", "Photo", "Waiting", "Walking", "WalkDog", "WalkTogether")
+#: Published numbers (PRN, ECCV 2020, Table 1): 15 actions in PAPER_COLUMNS order, then Avg.
+PAPER = {
+    ("PRN w/o reg", "gt-ortho"): (138.1, 139.7, 146.5, 145.2, 140, 127.6, 149.4, 170.4, 188.4, 138.3, 150.9, 133.1,
+                                  125.6, 143.9, 139.3, 144.8),
+    ("CSF2 + NN", "gt-ortho"): (87.2, 90.1, 96.1, 95.9, 102.9, 92.1, 99.3, 129.8, 136.7, 99.5, 120.1, 95.2, 90.8,
+                                102.4, 89.2, 101.6),
+    ("SPM + NN", "gt-ortho"): (65.3, 68.7, 82.0, 70.1, 95.3, 65.1, 71.9, 117.0, 136.0, 84.3, 88.9, 71.2, 59.5, 73.3,
+                               68.3, 82.3),
+    ("C3DPO", "gt-ortho"): (56.1, 55.6, 62.2, 66.4, 63.2, 62.0, 62.9, 76.3, 85.8, 59.9, 88.7, 63.3, 71.1, 70.7, 72.3,
+                            67.8),
+    ("PRN-FCN", "gt-ortho"): (65.3, 58.2, 60.5, 73.8, 60.7, 71.5, 64.6, 79.8, 90.2, 60.3, 81.2, 67.1, 54.4, 61.2,
+                              65.6, 66.7),
+    ("C3DPO", "gt-persp"): (96.8, 85.7, 85.8, 107.1, 86.0, 96.8, 93.9, 94.9, 96.7, 86.0, 124.3, 90.7, 95.2, 93.4,
+                            101.3, 95.6),
+    ("PRN-FCN", "gt-persp"): (93.1, 83.3, 76.2, 98.6, 78.8, 91.7, 81.4, 87.4, 91.6, 78.2, 104.3, 89.6, 83.0, 80.5,
+                              95.3, 86.4),
+    ("C3DPO", "sh"): (131.1, 137.4, 125.2, 146.4, 143.2, 141.4, 137.3, 141.4, 163.8, 136.2, 161, 143.4, 145.9, 153.2,
+                      168.6, 145.0),
+    ("PRN-FCN", "sh"): (100.2, 89.4, 83.8, 105.5, 93.0, 97.2, 89.2, 114.0, 141.2, 89.1, 114.8, 97.3, 91.0, 88.3,
+                        107.2, 99.1),  # SH fine-tuned detections (SH FT), as in the copy we evaluate on
+    ("PRN-FCN-W", "sh"): (100.3, 88.8, 82.8, 105.2, 91.4, 96.7, 88.1, 102.1, 113.2, 87.4, 115.1, 96.5, 91.7, 87.6,
+                          106.4, 95.9),
+}
+INPUTS = ("gt-ortho", "gt-persp", "sh")
+SYNTHETIC_FRAMES = 200
+
+
+# --------------------------------------------------------------------------- data
+def _detect_stride(root: Path, subject: str) -> int:
+    """5 for 50 fps files, 1 for 10 fps copies: judged from the joints' root-relative motion per frame."""
+    seqs = h36m.load_h36m(root, [subject], actions=("Walking",), cameras=(1,), stride=1)
+    if not seqs:
+        return 5
+    x = seqs[0].points_3d - seqs[0].points_3d[:, :1]
+    step = np.median(np.linalg.norm(np.diff(x, axis=0), axis=2))
+    return 1 if step > 12.0 else 5
+
+
+def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict[str, Split], dict]:
+    """The train/test data of every input type, and a description for the metadata."""
+    if args.data == "synthetic":
+        from nrsfm.datasets.synthetic import SUBJECTS, human_sequences
+
+        frames = 80 if args.quick else SYNTHETIC_FRAMES
+        train_s, test_s = h36m.TRAIN_SUBJECTS, h36m.TEST_SUBJECTS
+        assert set(train_s + test_s) <= set(SUBJECTS)
+        desc = {"data": "synthetic", "train_subjects": list(train_s), "test_subjects": list(test_s),
+                "frames_per_clip": frames, "fps": 10, "takes": 2}
+        splits = {}
+        for inp in inputs:
+            kw = {"projection": "orthographic" if inp == "gt-ortho" else "perspective", "n_frames": frames,
+                  "takes": 2, "seed": args.seed}
+            tr = human_sequences(train_s, **kw)
+            te = human_sequences(test_s, **kw)
+            if inp == "sh":  # detector-like noise, and no Neck/Nose detection (16 of 17 points), as SH
+                tr_in = [_drop_neck(s) for s in human_sequences(train_s, noise=8.0, **kw)]
+                te_in = [_drop_neck(s) for s in human_sequences(test_s, noise=8.0, **kw)]
+                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"synthetic-{frames}-{args.seed}-sh")
+            else:
+                splits[inp] = Split(tr, tr, te, te, inp, tag=f"synthetic-{frames}-{args.seed}-{inp}")
+        return splits, desc
+    from nrsfm.datasets import find_dataset
+
+    root = find_dataset("h36m", args.root)
+    present = {p.name for p in root.iterdir() if p.is_dir()}
+    train_s = [s for s in h36m.TRAIN_SUBJECTS if s in present]
+    test_s = [s for s in h36m.TEST_SUBJECTS if s in present]
+    if not train_s or not test_s:
+        raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS} and test subjects "
+                              f"{h36m.TEST_SUBJECTS}, found {sorted(present)}")
+    stride = _detect_stride(root, test_s[0]) if args.stride == "auto" else int(args.stride)
+    fps = 50.0  # the public files' rate; the loaders report fps = 50 / stride
+    desc = {"data": "h36m", "root": str(root), "train_subjects": train_s, "test_subjects": test_s,
+            "missing_test_subjects": [s for s in h36m.TEST_SUBJECTS if s not in present], "stride": stride,
+            "stride_rule": args.stride}
+    cache: dict[str, list] = {}
+
+    def load(subjects, inp):
+        key = f"{','.join(subjects)}|{inp}"
+        if key not in cache:
+            cache[key] = h36m.load_h36m(root, subjects, input=inp, stride=stride, source_fps=fps)
+        return cache[key]
+
+    splits = {}
+    for inp in inputs:
+        tag = f"h36m-{','.join(train_s)}-{stride}-{inp}"
+        if inp == "sh":
+            te_in = load(test_s, "sh")
+            names = {s.name for s in te_in}
+            te_gt = [s for s in load(test_s, "gt-persp") if s.name in names]
+            tr_in = load(train_s, "sh")
+            tr_names = {s.name for s in tr_in}
+            tr_gt = [s for s in load(train_s, "gt-persp") if s.name in tr_names]
+            splits[inp] = Split(tr_in, tr_gt, te_in, te_gt, inp, tag=tag)
+        else:
+            tr, te = load(train_s, inp), load(test_s, inp)
+            splits[inp] = Split(tr, tr, te, te, inp, tag=tag)
+    return splits, desc
+
+
+def _drop_neck(seq):
+    vis = np.ones((seq.n_frames, seq.n_points))
+    vis[:, h36m.JOINT_NAMES.index("Neck/Nose")] = 0.0
+    return seq.replace(visibility=vis, meta={**seq.meta, "input": "sh"})
+
+
+# --------------------------------------------------------------------------- evaluation
+def evaluate(preds: list[np.ndarray], truth: list) -> dict[str, tuple[float, int]]:
+    """Per action (and "Avg") the frame-weighted MPJPE (mm) and the frame count."""
+    from prn.data import denormalize
+
+    errs: dict[str, list[np.ndarray]] = defaultdict(list)
+    for p, seq in zip(preds, truth):
+        e = mpjpe_prn_per_frame(denormalize(p, seq.points_3d), seq.points_3d)
+        errs[seq.meta.get("action", "all")].append(e)
+        errs["Avg"].append(e)
+    return {a: (float(np.concatenate(v).mean()), int(sum(len(x) for x in v))) for a, v in errs.items()}
+
+
+def _columns(data: str, results: dict) -> list[str]:
+    if data == "h36m":
+        return list(PAPER_COLUMNS)
+    acts = sorted({a for per in results.values() for a in per if a != "Avg"})
+    return acts
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.table1", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", choices=["synthetic", "h36m"], default="synthetic")
+    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
+    p.add_argument("--input", choices=list(INPUTS) + ["all"], default="gt-ortho")
+    p.add_argument("--quick", action="store_true", help="a short schedule and small data: a smoke run")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick); "
+                        "the lr schedule is compressed proportionally")
+    p.add_argument("--methods", default=None, help="comma-separated rows (default: all registered)")
+    p.add_argument("--out", default=None, help="output folder (default: runs/table1-<data>)")
+    p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps "
+                                                    "copies, auto to detect")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    try:
+        return _run(args)
+    except (NRSfMError, FileNotFoundError, ValueError) as exc:
+        print(f"table1: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    t_start = time.perf_counter()
+    inputs = INPUTS if args.input == "all" else (args.input,)
+    iterations = args.iterations or (300 if args.quick else 70_000 if args.data == "h36m" else 4000)
+    registry = methods()
+    names = list(registry) if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    for n in names:
+        if n not in registry:
+            raise ValidationError(f"--methods: expected names among {list(registry)}, got {n!r}")
+    out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}")
+    ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
+                     device=args.device)
+    splits, desc = load_splits(args, inputs)
+    log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
+             desc["test_subjects"], iterations)
+    results: dict[tuple[str, str], dict[str, tuple[float, int]]] = {}
+    not_run: dict[tuple[str, str], str] = {}
+    for inp, split in splits.items():
+        for name in names:
+            m = registry[name]
+            if inp not in m.inputs:
+                not_run[(name, inp)] = f"{name} does not take {inp} input"
+                continue
+            log.info("training/evaluating %s on %s ...", name, inp)
+            preds = m.run(split, ctx)
+            results[(name, inp)] = evaluate(preds, split.test_truth)
+
+    cols = _columns(args.data, {k: v for k, v in results.items()})
+    rows_csv, md = [], []
+    header = ["Method"] + cols + ["Avg", "paper Avg"]
+    for inp in inputs:
+        md.append(f"\n### Table 1 ({inp}): MPJPE (mm), {desc['data']}, test {'+'.join(desc['test_subjects'])}, "
+                  "PRN protocol (mean-centred, z sign per frame, no Procrustes)\n")
+        rows = []
+        for name in names:
+            paper = PAPER.get((name, inp))
+            paper_avg = paper[-1] if paper else None
+            if (name, inp) in results:
+                r = results[(name, inp)]
+                rows.append([f"{name} (ours)"] + [r.get(c, (None, 0))[0] for c in cols] + [r["Avg"][0], paper_avg])
+                for c in cols + ["Avg"]:
+                    if c in r:
+                        rows_csv.append({"input": inp, "method": name, "action": c, "mpjpe_mm": r[c][0],
+                                         "frames": r[c][1], "paper_mpjpe_mm": _paper_cell(paper, c)})
+            else:
+                rows.append([f"{name} (ours)"] + ["not run"] * len(cols) + [f"not run: {not_run.get((name, inp))}",
+                                                                             paper_avg])
+            if paper and args.data == "h36m":
+                rows.append([f"{name} (paper)"] + [_paper_cell(paper, c) for c in cols] + [paper[-1], paper[-1]])
+        for (pname, pinp), paper in PAPER.items():
+            if pinp == inp and pname not in names:
+                rows.append([f"{pname} (paper; not implemented here yet)"]
+                            + ([_paper_cell(paper, c) for c in cols] if args.data == "h36m" else [None] * len(cols))
+                            + [None, paper[-1]])
+        md.append(markdown_table(header, rows))
+    if args.data == "synthetic":
+        md.append("\nSynthetic stand-in: the paper columns are Human3.6M numbers, shown for orientation only.")
+    text = "\n".join(md)
+    print(text)
+    total = time.perf_counter() - t_start
+    meta = run_metadata(table="PRN Table 1", metric="MPJPE (mm), PRN protocol", data=desc, inputs=list(inputs),
+                        methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
+                        timings=ctx.timings, total_seconds=total)
+    write_csv(out / "table1.csv", rows_csv)
+    write_json(out / "table1.json", {"meta": meta, "results": [
+        {"method": n, "input": i, "per_action": {a: {"mpjpe_mm": v[0], "frames": v[1]} for a, v in r.items()},
+         "paper_avg": PAPER.get((n, i), (None,))[-1]} for (n, i), r in results.items()],
+        "not_run": [{"method": n, "input": i, "why": w} for (n, i), w in not_run.items()]})
+    write_json(out / "meta.json", meta)
+    (out / "table1.md").write_text(text + "\n")
+    _plot(results, out / "table1.png", args.data)
+    print(f"\nwrote {out}/table1.md, table1.csv, table1.json, meta.json, table1.png ({total:.0f} s)")
+    return 0
+
+
+def _paper_cell(paper, col):
+    if paper is None or col not in PAPER_COLUMNS + ("Avg",):
+        return None
+    return paper[-1] if col == "Avg" else paper[PAPER_COLUMNS.index(col)]
+
+
+def _plot(results, path: Path, data: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    labels = [f"{n}\n{i}" for (n, i) in results]
+    ours = [r["Avg"][0] for r in results.values()]
+    paper = [PAPER.get(k, (np.nan,))[-1] for k in results]
+    x = np.arange(len(labels))
+    fig, ax = plt.subplots(figsize=(max(4, 1.6 * len(labels)), 3.2))
+    ax.bar(x - 0.2, ours, 0.4, label=f"ours ({data})")
+    ax.bar(x + 0.2, paper, 0.4, label="paper (Human3.6M)")
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_ylabel("MPJPE (mm)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, format="png", dpi=90)
+    tmp.replace(path)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,226 @@
+"""The PRN training recipe, with checkpoints, resume and progress.
+
+Defaults are the paper's (ECCV 2020, supplementary): Adam (0.9, 0.999), lr
+1e-4 multiplied by 0.8 every 5000 iterations, weight decay 1e-4 (in the
+official code, not the paper), lambda = 0.05, minibatch 128 = 4 groups x 32
+frames, 70k iterations with batch-norm statistics frozen for the last 30%.
+As in the official code the frozen-BN phase restarts the learning-rate
+schedule (50k + 20k for the default 70k).
+
+Checkpoints are written atomically every ``checkpoint_every`` iterations to
+``<out>/checkpoint.pt``; :func:`train` continues from it when ``resume`` is
+True. A NaN/inf loss stops training with :class:`TrainingError` naming the
+iteration and the last good checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nrsfm.errors import NRSfMError, ValidationError
+from prn.data import TrainingSet
+from prn.loss import PRLossParts, pr_loss
+from prn.model import PRNFCN
+
+log = logging.getLogger(__name__)
+
+
+class TrainingError(NRSfMError, RuntimeError):
+    """Training cannot continue (e.g. the loss became NaN)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (paper defaults)."""
+
+    iterations: int = 70_000
+    bn_freeze_fraction: float = 0.3
+    lr: float = 1e-4
+    lr_decay: float = 0.8
+    lr_step: int = 5000
+    weight_decay: float = 1e-4
+    lam: float = 0.05
+    groups: int = 4
+    group_size: int = 32
+    frame_gap: int = 5
+    width: int = 1024
+    seed: int = 0
+    checkpoint_every: int = 2000
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1 or self.groups < 1 or self.group_size < 2:
+            raise ValidationError(f"TrainConfig: expected iterations >= 1, groups >= 1, group_size >= 2, got "
+                                  f"{self.iterations}, {self.groups}, {self.group_size}")
+        if not 0 <= self.bn_freeze_fraction < 1:
+            raise ValidationError(f"bn_freeze_fraction: expected [0, 1), got {self.bn_freeze_fraction}")
+        if self.lam < 0 or self.lr <= 0:
+            raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
+
+    @property
+    def phase_boundary(self) -> int:
+        """The iteration at which BN statistics freeze and the lr schedule restarts."""
+        return int(round(self.iterations * (1 - self.bn_freeze_fraction)))
+
+    def lr_at(self, iteration: int) -> float:
+        local = iteration if iteration < self.phase_boundary else iteration - self.phase_boundary
+        return self.lr * self.lr_decay ** (local // self.lr_step)
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """``auto``: CUDA when available, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _freeze_bn_stats(model: torch.nn.Module) -> None:
+    for m in model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()  # running statistics frozen; affine scale/shift still trained
+
+
+def _atomic_save(obj: dict, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+@dataclass
+class TrainResult:
+    """A trained model and its history (loss every ``log_every`` iterations) and timings."""
+
+    model: PRNFCN
+    config: TrainConfig
+    history: list[dict]
+    seconds: float
+    iterations_run: int
+    iterations_per_second: float
+    loss_seconds: float
+
+
+def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str | os.PathLike | None = None, *,
+          resume: bool = True, progress: bool = True, log_every: int = 100,
+          stop_after: int | None = None) -> TrainResult:
+    """Train PRN-FCN on ``data`` with the PR loss.
+
+    Args:
+        data: from :func:`prn.data.build_training_set`.
+        config: hyper-parameters; ``lam = 0`` trains "PRN w/o reg".
+        out_dir: where ``checkpoint.pt`` and ``model.pt`` go (None: no files).
+        resume: continue from ``out_dir/checkpoint.pt`` when it exists.
+        progress: show a tqdm bar (quiet when stderr is not a terminal).
+        stop_after: stop (with a checkpoint) after this many iterations in this
+            call, as an interruption would; a later call with ``resume`` goes on.
+
+    Returns:
+        :class:`TrainResult`; ``loss_seconds`` is the time spent in the PR
+        loss forward + backward (for the speed report).
+    """
+    from tqdm.auto import tqdm
+
+    device = pick_device(config.device)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    model = PRNFCN(data.n_points, data.n_inputs, config.width).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
+    start, history = 0, []
+    out = Path(out_dir) if out_dir is not None else None
+    ckpt_path = out / "checkpoint.pt" if out is not None else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    if ckpt_path is not None and resume and ckpt_path.exists():
+        state = torch.load(ckpt_path, map_location=device, weights_only=False)
+        if state["config"] != dataclasses.asdict(config):
+            raise ValidationError(f"{ckpt_path}: the checkpoint was made with another configuration; use another "
+                                  "output folder or resume=False")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start, history = state["iteration"], state["history"]
+        rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        log.info("resumed from %s at iteration %d", ckpt_path, start)
+
+    x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
+    xw_all = torch.as_tensor(data.input_weights, dtype=torch.float32, device=device)
+    y_all = torch.as_tensor(data.targets, dtype=torch.float32, device=device)
+    yw_all = torch.as_tensor(data.target_weights, dtype=torch.float32, device=device)
+    parts = PRLossParts()
+    model.train()
+    if start >= config.phase_boundary:
+        _freeze_bn_stats(model)
+    t_begin, loss_time = time.perf_counter(), 0.0
+    bar = tqdm(total=config.iterations, initial=start, desc=f"PRN lam={config.lam}", disable=not progress,
+               mininterval=2.0)
+    end = config.iterations if stop_after is None else min(config.iterations, start + stop_after)
+    for it in range(start, end):
+        if it == config.phase_boundary:
+            _freeze_bn_stats(model)
+        for g in opt.param_groups:
+            g["lr"] = config.lr_at(it)
+        idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
+                              device=device)
+        pred = model(x_all[idx], xw_all[idx])
+        t0 = time.perf_counter()
+        loss = pr_loss(pred, y_all[idx], yw_all[idx], lam=config.lam, group_size=config.group_size, parts=parts)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        loss_time += time.perf_counter() - t0  # loss forward + its (analytic) backward + network backward
+        if not torch.isfinite(loss):
+            where = f"; the last good checkpoint is {ckpt_path}" if ckpt_path and ckpt_path.exists() else ""
+            raise TrainingError(f"the loss became {loss.item()} at iteration {it}{where}; lower the learning rate "
+                                "or check the inputs for NaN")
+        opt.step()
+        if (it + 1) % log_every == 0 or it == start:
+            history.append({"iteration": it + 1, "loss": loss.item(), "data": parts.data, "nuclear": parts.nuclear,
+                            "lr": config.lr_at(it)})
+            bar.set_postfix(loss=f"{history[-1]['loss']:.4g}")
+        bar.update(1)
+        if ckpt_path is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == end):
+            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
+                          "history": history, "config": dataclasses.asdict(config),
+                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt_path)
+    bar.close()
+    seconds = time.perf_counter() - t_begin
+    run = max(end - start, 0)
+    if out is not None and end == config.iterations:
+        _atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": data.n_points,
+                      "n_inputs": data.n_inputs, "history": history}, out / "model.pt")
+        (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), "seconds": seconds,
+                                                    "iterations_run": run, "data": data.description,
+                                                    "history": history[-5:]}, indent=2))
+    model.eval()
+    return TrainResult(model=model, config=config, history=history, seconds=seconds, iterations_run=run,
+                       iterations_per_second=run / seconds if seconds > 0 else float("nan"), loss_seconds=loss_time)
+
+
+def load_model(path: str | os.PathLike, device: str = "auto") -> PRNFCN:
+    """Load ``model.pt`` written by :func:`train`."""
+    state = torch.load(Path(path), map_location=pick_device(device), weights_only=False)
+    model = PRNFCN(state["n_points"], state["n_inputs"], state["config"]["width"])
+    model.load_state_dict(state["model"])
+    return model.to(pick_device(device)).eval()
+
+
+@torch.no_grad()
+def predict(model: PRNFCN, inputs: np.ndarray, input_weights: np.ndarray | None = None,
+            batch: int = 4096) -> np.ndarray:
+    """Normalised `(N, P_in, 2)` inputs -> `(N, P, 3)` normalised shapes (model in eval mode)."""
+    model.eval()
+    device = next(model.parameters()).device
+    out = []
+    for s in range(0, len(inputs), batch):
+        x = torch.as_tensor(inputs[s:s + batch], dtype=torch.float32, device=device)
+        w = None if input_weights is None else torch.as_tensor(input_weights[s:s + batch], dtype=torch.float32,
+                                                                device=device)
+        out.append(model(x, w).double().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))

@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+import torch
+
+from nrsfm.datasets.synthetic import human_sequences
+from nrsfm.errors import ValidationError
+from prn.data import build_training_set, denormalize, normalize_2d, normalize_3d
+from prn.model import PRNCNN, PRNFCN
+from prn.train import TrainConfig, TrainingError, load_model, predict, train
+
+
+@pytest.fixture(scope="module")
+def small_set():
+    seqs = human_sequences(("S1", "S5"), ("walking", "bending"), n_frames=60, takes=2)
+    return build_training_set(seqs)
+
+
+def test_normalisation_roundtrip():
+    seq = human_sequences(("S9",), ("walking",), (2,), n_frames=10)[0]
+    x, s = normalize_2d(seq.points_2d)
+    np.testing.assert_allclose(np.linalg.norm(x.reshape(10, -1), axis=1), 1.0)
+    np.testing.assert_allclose(x.mean(axis=1), 0.0, atol=1e-12)
+    y, s3 = normalize_3d(seq.points_3d)
+    np.testing.assert_allclose(s, s3)  # orthographic GT: the same xy norm
+    np.testing.assert_allclose(denormalize(y, seq.points_3d), seq.points_3d - seq.points_3d.mean(1, keepdims=True))
+
+
+def test_multiview_groups_cycle_cameras_half_a_second_apart(small_set):
+    assert len(small_set.streams) == 4  # 2 subjects x 2 takes
+    assert all(s.shape[0] == 4 for s in small_set.streams)  # 4 cameras
+    idx = small_set.sample_groups(np.random.default_rng(0), 1, 8, gap=5)
+    stream = next(s for s in small_set.streams if idx[0] in s)
+    pos = [np.argwhere(stream == i)[0] for i in idx]  # (camera, time)
+    cams = [c for c, _ in pos]
+    times = [t for _, t in pos]
+    assert np.all(np.diff(times) == 5)
+    assert all((b - a) % 4 == 1 for a, b in zip(cams, cams[1:]))
+
+
+def test_sh_inputs_drop_the_undetected_joint():
+    seqs = human_sequences(("S1",), ("walking",), n_frames=40, takes=2)
+    vis = np.ones((40, 17))
+    vis[:, 9] = 0
+    det = [s.replace(visibility=vis) for s in seqs]
+    ts = build_training_set(det, seqs)
+    assert ts.n_inputs == 16 and ts.n_points == 17
+    x, w = ts.prepare_inputs(det[0])
+    assert x.shape == (40, 16, 2)
+
+
+def test_fcn_shapes_and_initial_output_is_small():
+    net = PRNFCN(17, 16, width=64)
+    out = net(torch.randn(8, 16, 2))
+    assert out.shape == (8, 17, 3) and out.abs().max() < 0.5
+    with pytest.raises(ValidationError, match=r"expected \(N, 16, 2\)"):
+        net(torch.randn(8, 17, 2))
+
+
+def test_cnn_head_with_a_small_backbone():
+    backbone = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3, stride=4), torch.nn.ReLU())
+    net = PRNCNN(17, backbone=backbone, feature_dim=4 * 8 * 8, width=32)
+    assert net(torch.randn(2, 3, 34, 34)).shape == (2, 17, 3)
+
+
+def test_training_reduces_the_loss_and_checkpoints_resume(small_set, tmp_path):
+    cfg = TrainConfig(iterations=40, width=64, lr=1e-3, lr_step=20, checkpoint_every=20, group_size=8, groups=2)
+    full = train(small_set, cfg, tmp_path / "a", progress=False, log_every=1)
+    assert full.history[-1]["loss"] < full.history[0]["loss"]
+    # an interrupted run (stopped after 20 iterations) resumed to 40 gives the same weights
+    part = train(small_set, cfg, tmp_path / "b", progress=False, stop_after=20)
+    assert part.iterations_run == 20 and not (tmp_path / "b" / "model.pt").exists()
+    resumed = train(small_set, cfg, tmp_path / "b", progress=False)
+    assert resumed.iterations_run == 20 and (tmp_path / "b" / "model.pt").exists()
+    for k, v in full.model.state_dict().items():
+        torch.testing.assert_close(v, resumed.model.state_dict()[k], msg=k)
+    with pytest.raises(ValidationError, match="another configuration"):
+        train(small_set, TrainConfig(**{**cfg.__dict__, "lam": 0.5}), tmp_path / "b", progress=False)
+    model = load_model(tmp_path / "a" / "model.pt")
+    x, w = small_set.prepare_inputs(human_sequences(("S9",), ("walking",), (1,), n_frames=5)[0])
+    np.testing.assert_allclose(predict(model, x, w), predict(full.model, x, w), atol=1e-6)
+
+
+def test_nan_loss_stops_with_a_clear_error(small_set, tmp_path):
+    bad = build_training_set(human_sequences(("S1",), ("walking",), n_frames=60, takes=1))
+    bad.targets[:] = np.nan
+    with pytest.raises(TrainingError, match="the loss became nan at iteration 0"):
+        train(bad, TrainConfig(iterations=5, width=16, group_size=8, groups=1), tmp_path, progress=False)
+
+
+def test_schedule():
+    cfg = TrainConfig()
+    assert cfg.phase_boundary == 49_000
+    assert cfg.lr_at(0) == 1e-4 and cfg.lr_at(5000) == pytest.approx(0.8e-4)
+    assert cfg.lr_at(49_000) == 1e-4  # the frozen-BN phase restarts the schedule, as the official code
+    with pytest.raises(ValidationError):
+        TrainConfig(group_size=1)
