@@ -40,7 +40,14 @@ class TrainingError(NRSfMError, RuntimeError):
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training hyper-parameters (paper defaults)."""
+    """Training hyper-parameters (paper defaults).
+
+    ``missing_points`` > 0 reproduces the missing-points experiment
+    (supplementary Table 1): each training sample loses a random fraction in
+    [0.05, missing_points] of its points, set to 0 in the input and given
+    weight 0 in the data term (the same points, as inputs and outputs
+    correspond one to one).
+    """
 
     iterations: int = 70_000
     bn_freeze_fraction: float = 0.3
@@ -56,6 +63,7 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 2000
     device: str = "auto"
+    missing_points: float = 0.0
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.groups < 1 or self.group_size < 2:
@@ -63,6 +71,8 @@ class TrainConfig:
                                   f"{self.iterations}, {self.groups}, {self.group_size}")
         if not 0 <= self.bn_freeze_fraction < 1:
             raise ValidationError(f"bn_freeze_fraction: expected [0, 1), got {self.bn_freeze_fraction}")
+        if not 0 <= self.missing_points < 1:
+            raise ValidationError(f"missing_points: expected a fraction in [0, 1), got {self.missing_points}")
         if self.lam < 0 or self.lr <= 0:
             raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
 
@@ -169,9 +179,16 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
             g["lr"] = config.lr_at(it)
         idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
                               device=device)
-        pred = model(x_all[idx], xw_all[idx])
+        xw, yw = xw_all[idx], yw_all[idx]
+        if config.missing_points > 0:
+            frac = torch.empty(len(idx), 1, device=device).uniform_(0.05, config.missing_points)
+            keep = (torch.rand(len(idx), yw.shape[1], device=device) >= frac).to(yw.dtype)  # (N, P)
+            yw = yw * keep
+            if data.input_points is not None and len(data.input_points) == yw.shape[1]:
+                xw = xw * keep
+        pred = model(x_all[idx], xw)
         t0 = time.perf_counter()
-        loss = pr_loss(pred, y_all[idx], yw_all[idx], lam=config.lam, group_size=config.group_size, parts=parts)
+        loss = pr_loss(pred, y_all[idx], yw, lam=config.lam, group_size=config.group_size, parts=parts)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         loss_time += time.perf_counter() - t0  # loss forward + its (analytic) backward + network backward

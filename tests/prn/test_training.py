@@ -94,3 +94,21 @@ def test_schedule():
     assert cfg.lr_at(49_000) == 1e-4  # the frozen-BN phase restarts the schedule, as the official code
     with pytest.raises(ValidationError):
         TrainConfig(group_size=1)
+
+
+def test_random_and_consecutive_sampling():
+    seqs = human_sequences(("S1",), ("walking", "waving"), (1,), n_frames=30)
+    rnd = build_training_set(seqs, sampling="random")
+    idx = rnd.sample_groups(np.random.default_rng(0), 3, 10)
+    assert len(idx) == 30 and len(set(idx[:10])) == 10
+    con = build_training_set(seqs, sampling="consecutive")
+    idx = con.sample_groups(np.random.default_rng(0), 2, 10)
+    assert np.all(np.diff(idx[:10]) == 1) and np.all(np.diff(idx[10:]) == 1)
+    with pytest.raises(ValidationError, match="no sequence has"):
+        con.sample_groups(np.random.default_rng(0), 1, 31)
+
+
+def test_missing_points_training_runs(small_set):
+    res = train(small_set, TrainConfig(iterations=5, width=32, group_size=8, groups=2, missing_points=0.2),
+                progress=False)
+    assert np.isfinite(res.history[-1]["loss"])
