@@ -160,17 +160,72 @@ def stationarity_jacobian(z):
     return jac.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
 
 
-def align_vjp(grad_aligned, al: Alignment):
+def apply_stationarity_jacobian(z, w):
+    """``(J + E^T E) w`` without forming J: `(B, n, 3, P)` shapes, `(B, n, 3)` -> `(B, n, 3)`; O(nP)."""
+    m = z.sum(dim=1, keepdim=True)  # (B, 1, 3, P)
+    sw = skew(w)  # (B, n, 3, 3)
+    diag = vee_antisym(sw @ z @ m.transpose(-1, -2))  # v([w_i] Z_i M^T)
+    s = (sw @ z).sum(dim=1, keepdim=True)  # (B, 1, 3, P)  sum_j [w_j] Z_j
+    coup = vee_antisym(z @ s.transpose(-1, -2))  # v(Z_i S^T)
+    return diag + coup + w.sum(dim=1, keepdim=True)
+
+
+def _diagonal_blocks(z):
+    """The `(B, n, 3, 3)` blocks ``A_i`` of J from ``v([w_i]_x Z_i M^T)`` alone (no coupling, no gauge)."""
+    torch = _torch()
+    eps = _levi_civita(z)
+    m = z.sum(dim=1)  # (B, 3, P)
+    k = z @ m.unsqueeze(1).transpose(-1, -2)  # (B, n, 3, 3)
+    return torch.einsum("abc,ade,xndb->xnce", eps, eps, k)
+
+
+def solve_stationarity(z, rhs, *, method: str = "auto"):
+    """Solve ``(J + E^T E) x = rhs`` for `(B, n, 3)` rhs (J is symmetric at a converged alignment).
+
+    ``method``: ``"dense"`` assembles the `(3n, 3n)` matrix (small groups);
+    ``"woodbury"`` uses ``J + E^T E = blockdiag(A_i) + U V^T`` with the
+    coupling ``v(Z_i (sum_j [w_j]_x Z_j)^T)`` of rank <= 3P and the gauge of
+    rank 3, an exact O(n P^2) solve for long sequences; ``"auto"`` picks
+    dense up to n = 64.
+    """
+    torch = _torch()
+    b, n, _, p = z.shape
+    if method == "auto":
+        method = "dense" if n <= 64 else "woodbury"
+    if method == "dense":
+        jac = stationarity_jacobian(z)
+        return torch.linalg.solve(jac.transpose(-1, -2), rhs.reshape(b, 3 * n, 1)).reshape(b, n, 3)
+    if method != "woodbury":
+        raise ValueError(f"method: expected 'auto', 'dense' or 'woodbury', got {method!r}")
+    eps = _levi_civita(z)
+    d_inv = torch.linalg.inv(_diagonal_blocks(z))  # (B, n, 3, 3)
+    # coupling = C Q:  C[(i,c),(b,p)] = -eps_abc Z_i,ap ;  Q[(b,p),(j,e)] = -eps_bde Z_j,dp
+    c_mat = -torch.einsum("abc,xiap->xicbp", eps, z).reshape(b, n, 3, 3 * p)
+    q_mat = -torch.einsum("bde,xjdp->xbpje", eps, z).reshape(b, 3 * p, n, 3)
+    eye3 = torch.eye(3, dtype=z.dtype, device=z.device).expand(b, n, 3, 3)
+    u = torch.cat([c_mat, eye3], dim=-1)  # (B, n, 3, r)  r = 3P + 3
+    vt = torch.cat([q_mat, eye3.permute(0, 2, 1, 3)], dim=1)  # (B, r, n, 3)
+    # the system is symmetric, so solving J x = rhs and J^T x = rhs agree; we solve J^T x = rhs:
+    # J^T = D^T + V U^T  ->  Woodbury with D^T, V, U
+    dt_inv = d_inv.transpose(-1, -2)
+    v_mat = vt.permute(0, 2, 3, 1)  # (B, n, 3, r)
+    dinv_rhs = (dt_inv @ rhs.unsqueeze(-1)).squeeze(-1)  # (B, n, 3)
+    dinv_v = dt_inv @ v_mat  # (B, n, 3, r)
+    small = torch.eye(u.shape[-1], dtype=z.dtype, device=z.device) + torch.einsum("xnci,xncj->xij", u, dinv_v)
+    t = torch.linalg.solve(small, torch.einsum("xnci,xnc->xi", u, dinv_rhs).unsqueeze(-1)).squeeze(-1)  # (B, r)
+    return dinv_rhs - torch.einsum("xnci,xi->xnc", dinv_v, t)
+
+
+def align_vjp(grad_aligned, al: Alignment, *, method: str = "auto"):
     """Backpropagate ``dL/dZ`` `(B, n, 3, P)` through the alignment to ``dL/dX`` `(B, n, 3, P)`.
 
-    Exact at a converged alignment (see the module docstring).
+    Exact at a converged alignment (see the module docstring). ``method``
+    selects the linear solver (:func:`solve_stationarity`).
     """
     torch = _torch()
     z, rot = al.aligned, al.rotations
-    b, n = z.shape[:2]
     h = vee_antisym(grad_aligned @ z.transpose(-1, -2))  # (B, n, 3)
-    jac = stationarity_jacobian(z)  # (B, 3n, 3n)
-    mu = torch.linalg.solve(jac.transpose(-1, -2), h.reshape(b, 3 * n, 1)).reshape(b, n, 3)
+    mu = solve_stationarity(z, h, method=method)
     m = z.sum(dim=1, keepdim=True)  # (B, 1, 3, P)
     smu = skew(mu)  # (B, n, 3, 3)
     coupling = (smu @ z).sum(dim=1, keepdim=True)  # (B, 1, 3, P)
@@ -197,6 +252,21 @@ def nuclear_norm_and_subgradient(z):
     sign = (s > tol).to(z.dtype)
     sub = (u * sign.unsqueeze(-2)) @ vt  # (B, 3P, n)
     return s.sum(dim=-1), sub.transpose(1, 2).reshape(z.shape)
+
+
+def smoothed_nuclear_norm_and_gradient(z, smoothing: float):
+    """``sum_k sqrt(s_k^2 + e^2)`` of ``Z~`` `(3P, n)` and its gradient ``U diag(s / sqrt(s^2 + e^2)) V^T``.
+
+    A differentiable surrogate of the nuclear norm (``e = smoothing``, in the
+    units of the singular values) used by the per-sequence PR solver.
+    """
+    torch = _torch()
+    b, n = z.shape[:2]
+    mat = z.reshape(b, n, -1).transpose(1, 2)
+    u, s, vt = torch.linalg.svd(mat, full_matrices=False)
+    root = torch.sqrt(s * s + smoothing * smoothing)
+    grad = (u * (s / root).unsqueeze(-2)) @ vt
+    return root.sum(dim=-1), grad.transpose(1, 2).reshape(z.shape)
 
 
 def numpy_align(x: np.ndarray, **kwargs) -> tuple[np.ndarray, np.ndarray]:

@@ -69,3 +69,44 @@ def test_params_from_strings_coerces_and_validates():
         params_from_strings(Rank3Params, ["min_eigenvalue"])
     with pytest.raises(ValidationError, match=r"min_eigenvalue: expected a value in \(0, 1\)"):
         Rank3Params(min_eigenvalue=2.0)
+
+
+# ------------------------------------------------------------------ PR
+def test_pr_recovers_a_noise_free_low_rank_sequence():
+    seq = lowrank_sequence(200, 30, 3, seed=0)
+    rec = solve(seq, "pr")
+    assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+    np.testing.assert_allclose(rec.points_3d[..., :2], seq.points_2d - seq.points_2d.mean(1, keepdims=True),
+                               atol=1e-9)  # reprojection is exact
+    np.testing.assert_allclose(np.linalg.det(rec.rotations), 1.0, atol=1e-9)
+
+
+def test_pr_with_missing_points():
+    seq = lowrank_sequence(120, 25, 3, seed=1, missing=0.2)
+    rec = solve(seq, "pr")
+    assert e3d(rec.points_3d, seq.points_3d) < 5e-3
+
+
+@pytest.mark.parametrize("case", ["rigid", "two_frames", "planar"])
+def test_pr_degenerate_inputs_never_nan(case, rng):
+    if case == "rigid":
+        seq = lowrank_sequence(30, 10, 1, seed=0)
+    elif case == "two_frames":
+        seq = lowrank_sequence(2, 10, 2, seed=0)
+    else:
+        shape = np.c_[rng.standard_normal((10, 2)), np.zeros(10)]
+        rot = lowrank_sequence(10, 10, 1, seed=0).camera_rotations
+        pts = np.einsum("fij,pj->fpi", rot, shape)
+        seq = Sequence(points_2d=pts[..., :2], points_3d=pts)
+    rec = solve(seq, "pr", max_iter=30)
+    assert np.isfinite(rec.points_3d).all()
+    if case == "rigid":
+        assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+
+
+def test_pr_refuses_a_frame_without_points():
+    seq = lowrank_sequence(10, 8, 2, seed=0)
+    vis = np.ones((10, 8))
+    vis[4] = 0
+    with pytest.raises(SolverError, match="frame 4 has fewer than 3 visible points"):
+        solve(seq.replace(visibility=vis), "pr")
