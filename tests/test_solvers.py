@@ -110,3 +110,31 @@ def test_pr_refuses_a_frame_without_points():
     vis[4] = 0
     with pytest.raises(SolverError, match="frame 4 has fewer than 3 visible points"):
         solve(seq.replace(visibility=vis), "pr")
+
+
+# ------------------------------------------------------------------ CSF2
+def test_csf2_recovers_a_noise_free_low_rank_sequence():
+    seq = lowrank_sequence(200, 30, 3, seed=0, cameras="random")
+    rec = solve(seq, "csf2", K=3, d=100)
+    assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+    assert rec.info["camera_residual"] < 1e-10  # exact cameras from the complementary rank-3 space
+
+
+def test_csf2_occlusion_aware_and_auto_rank():
+    seq = lowrank_sequence(150, 30, 2, seed=3, cameras="random", missing=0.2)
+    rec = solve(seq, "csf2", d=75)
+    assert rec.info["K"] >= 2
+    assert e3d(rec.points_3d, seq.points_3d) < 0.02
+
+
+def test_csf2_dct_basis_is_orthonormal():
+    from nrsfm.solvers.csf2 import dct_basis
+
+    b = dct_basis(50, 10)
+    np.testing.assert_allclose(b.T @ b, np.eye(10), atol=1e-12)
+    assert np.ptp(b[:, 0]) < 1e-12
+
+
+def test_csf2_refuses_too_large_k():
+    with pytest.raises(SolverError, match="3K <= min"):
+        solve(lowrank_sequence(10, 8, 1, seed=0), "csf2", K=4)

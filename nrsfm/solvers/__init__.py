@@ -10,6 +10,7 @@ from nrsfm.solvers.base import (Reconstruction, SolverSpec, available_solvers, g
 from nrsfm.solvers import rank3 as _rank3  # noqa: F401  (registers "rank3")
 from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 from nrsfm.solvers.pr import PRParams, solve_pr
+from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
 
 
 def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstruction:
@@ -21,4 +22,4 @@ def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstructio
 
 
 __all__ = ["Reconstruction", "SolverSpec", "available_solvers", "get_solver", "params_from_strings", "register",
-           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr"]
+           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2"]

@@ -1,0 +1,177 @@
+"""The classic NRSfM benchmark: every registered solver on every CMU sequence.
+
+    python -m benchmarks.classic [--root DIR] [--jobs N] [--methods a,b] [--missing 0.2] [--out DIR]
+
+Reads every `.mat` under ``DIR/nrsfm`` (default ``$NRSFM_DATA/nrsfm``; Akhter
+and PND layouts), solves each with every registered solver (in parallel over
+sequences with joblib; per-sequence seeds come from the sequence name, so
+results do not depend on ``--jobs``), and prints one Markdown table: per
+sequence and method the e3D in the camera frame, the e3D in the object frame
+(where the ground truth has a world frame), the normalised error and the run
+time, with the reference numbers of the authors' code (NOTES.md) beside them.
+``--missing 0.2`` marks that fraction of entries missing (fixed seed) first.
+Also written as CSV and JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+
+log = logging.getLogger("benchmarks.classic")
+
+#: Reference numbers (NOTES.md): authors' code in Octave on 2 cores. Per sequence and method:
+#: (e3D camera frame, e3D object frame or None, normalised error, seconds).
+REFERENCE = {
+    "drink": {"PTA": (.0233, .0250, .0154, 20), "CSF2": (.0168, .0197, .0115, 87), "EM-PND2": (.0048, None, .0031, 742)},
+    "pickup": {"PTA": (.0693, .2369, .0415, 3), "CSF2": (.0256, .2248, .0170, 49),
+               "EM-PND2": (.0193, None, .0132, 291)},
+    "yoga": {"PTA": (.0516, .1629, .0379, 4), "CSF2": (.0303, .1479, .0212, 54), "EM-PND2": (.0169, None, .0128, 279)},
+    "stretch": {"PTA": (.0833, .1088, .0567, 3), "CSF2": (.0393, .0712, .0246, 48),
+                "KSTA": (.0572, .0839, .0336, 446), "EM-PND2": (.0222, None, .0149, 299)},
+    "dance": {"PTA": (.2957, None, .2478, 1), "CSF2": (.2681, None, .1933, 117), "KSTA": (.1796, None, .1290, 202),
+              "EM-PND2": (.1567, None, .1247, 787)},
+    "walking": {"PTA": (.6012, None, .3054, 3), "CSF2": (.1857, None, .1233, 51), "KSTA": (.1038, None, .0681, 91),
+                "EM-PND2": (.0597, None, .0407, 354)},
+    "face": {"PTA": (.0444, None, .0299, 2), "CSF2": (.0363, None, .0254, 31), "KSTA": (.0337, None, .0227, 101),
+             "EM-PND2": (.0211, None, .0150, 158)},
+    "jaws_rearranged": {"PTA": (.2497, None, .1560, 0.5), "CSF2": (.0081, None, .0037, 0.2),
+                        "EM-PND2": (.0550, None, .0272, 892)},
+}
+#: SPM (Dai et al.) from its authors' own run: object frame for the Akhter sequences, camera frame otherwise.
+SPM_REFERENCE = {"drink": (".0266", "object"), "pickup": (".1731", "object"), "yoga": (".1150", "object"),
+                 "stretch": (".1034", "object"), "dance": (".1864", "camera"), "face": (".0303", "camera"),
+                 "walking": (".1298", "camera"), "jaws_rearranged": (".2357", "camera")}
+#: Which reference row a registered solver is compared with.
+SOLVER_REFERENCE = {"csf2": "CSF2", "empnd": "EM-PND2", "spm": "SPM", "pta": "PTA", "ksta": "KSTA"}
+
+
+def drop_entries(seq, fraction: float):
+    """Mark ``fraction`` of the entries missing, seeded by the sequence name (independent of the worker)."""
+    if fraction <= 0:
+        return seq
+    rng = np.random.default_rng(zlib.crc32(f"missing-{seq.name}-{fraction}".encode()))
+    vis = seq.weights.copy()
+    vis[rng.random(vis.shape) < fraction] = 0.0
+    return seq.replace(visibility=vis)
+
+
+def solve_sequence(path: str, methods: list[str], missing: float) -> list[dict]:
+    """All methods on one sequence file; one result row per method (errors recorded, never raised)."""
+    import nrsfm
+    from nrsfm.errors import NRSfMError
+    from nrsfm.metrics import e3d, normalized_error
+
+    seq = drop_entries(nrsfm.load_sequence(path), missing)
+    rows = []
+    for m in methods:
+        row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
+               "missing": missing}
+        t0 = time.perf_counter()
+        try:
+            rec = nrsfm.solve(seq, m)
+        except NRSfMError as exc:
+            row.update(status="not run", why=str(exc), seconds=time.perf_counter() - t0)
+            rows.append(row)
+            continue
+        row.update(status="ok", seconds=rec.runtime_s, iterations=rec.iterations, converged=rec.converged,
+                   e3d_camera=e3d(rec.points_3d, seq.points_3d),
+                   normalized_error=normalized_error(rec.points_3d, seq.points_3d))
+        if seq.camera_rotations is not None and rec.rotations is not None:
+            row["e3d_object"] = e3d(rec.points_3d, seq.points_3d, frame="object", pred_rotations=rec.rotations,
+                                    gt_rotations=seq.camera_rotations)
+        rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    from joblib import Parallel, delayed
+
+    from nrsfm.datasets import find_dataset, list_cmu_sequences
+    from nrsfm.errors import NRSfMError
+    from nrsfm.solvers import available_solvers
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.classic", description=__doc__.split("\n\n")[0])
+    p.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel sequences (joblib)")
+    p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
+    p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
+    p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
+    p.add_argument("--out", default=None, help="output folder (default: runs/classic[-missingX])")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    try:
+        folder = find_dataset("nrsfm", args.root)
+        files = list_cmu_sequences(folder)
+        if args.sequences:
+            want = {s.strip() for s in args.sequences.split(",")}
+            files = [f for f in files if f.stem in want]
+        methods = [m for m in available_solvers() if m != "rank3"] if args.methods is None else \
+            [m.strip() for m in args.methods.split(",")]
+        for m in methods:
+            if m not in available_solvers():
+                raise ValueError(f"--methods: expected names among {available_solvers()}, got {m!r}")
+        if not 0 <= args.missing < 1:
+            raise ValueError(f"--missing: expected a fraction in [0, 1), got {args.missing}")
+    except (NRSfMError, ValueError) as exc:
+        print(f"classic: error: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    log.info("classic: %d sequences x %s, missing %.0f%%, %d jobs", len(files), methods, 100 * args.missing,
+             args.jobs)
+    per_seq = Parallel(n_jobs=args.jobs)(delayed(solve_sequence)(str(f), methods, args.missing) for f in files)
+    rows = [r for rs in per_seq for r in rs]
+    table, verdicts = [], []
+    for rs in per_seq:
+        name = rs[0]["sequence"]
+        ref = REFERENCE.get(name, {})
+        best_pub = min((v[0] for v in ref.values()), default=None)
+        for r in rs:
+            refkey = SOLVER_REFERENCE.get(r["method"])
+            rv = ref.get(refkey) if refkey else None
+            refcell = "–"
+            if refkey == "SPM" and name in SPM_REFERENCE:
+                refcell = f"{SPM_REFERENCE[name][0]} ({SPM_REFERENCE[name][1]})"
+            elif rv:
+                refcell = f"{rv[0]:.4f}" + (f" [{rv[1]:.4f}]" if rv[1] is not None else "") + f" / {rv[2]:.4f}"
+            if r["status"] != "ok":
+                table.append([name, r["method"], f"not run: {r['why']}", "", "", f"{r['seconds']:.1f}", refcell, ""])
+                continue
+            table.append([name, r["method"], f"{r['e3d_camera']:.4f}",
+                          f"{r['e3d_object']:.4f}" if "e3d_object" in r else "–", f"{r['normalized_error']:.4f}",
+                          f"{r['seconds']:.1f}", refcell, f"{rv[3]:g}" if rv else "–"])
+        ok = [r for r in rs if r["status"] == "ok"]
+        if ok and best_pub is not None:
+            best = min(ok, key=lambda r: r["e3d_camera"])
+            verdicts.append([name, best["method"], f"{best['e3d_camera']:.4f}", f"{best_pub:.4f}",
+                             "yes" if best["e3d_camera"] < best_pub else "no"])
+    header = ["sequence", "method", "e3D camera", "e3D object", "norm. error", "time (s)",
+              "reference e3D cam [obj] / NE", "ref. time (s)"]
+    text = [f"### Classic NRSfM benchmark ({folder}, {100 * args.missing:.0f}% missing), e3D and normalised error "
+            "(camera frame unless stated), 2 CPU cores\n", markdown_table(header, table)]
+    if verdicts:
+        text += ["\nBest of ours vs best published (camera-frame e3D, authors' code; NOTES.md):\n",
+                 markdown_table(["sequence", "our best", "e3D", "best published", "ours better"], verdicts)]
+    print("\n".join(text))
+    out = Path(args.out or f"runs/classic{'-missing' + str(args.missing) if args.missing else ''}")
+    total = time.perf_counter() - t0
+    meta = run_metadata(benchmark="classic NRSfM", metric="e3D (camera/object frame), normalised error",
+                        data=str(folder), methods=methods, missing=args.missing, jobs=args.jobs,
+                        total_seconds=total)
+    write_csv(out / "classic.csv", rows)
+    write_json(out / "classic.json", {"meta": meta, "rows": rows})
+    (out / "classic.md").write_text("\n".join(text) + "\n")
+    print(f"\nwrote {out}/classic.md, classic.csv, classic.json ({total:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
