@@ -11,6 +11,7 @@ from nrsfm.solvers import rank3 as _rank3  # noqa: F401  (registers "rank3")
 from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 from nrsfm.solvers.pr import PRParams, solve_pr
 from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
+from nrsfm.solvers.spm import SPMParams, solve_spm
 
 
 def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstruction:
@@ -22,4 +23,4 @@ def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstructio
 
 
 __all__ = ["Reconstruction", "SolverSpec", "available_solvers", "get_solver", "params_from_strings", "register",
-           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2"]
+           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2", "SPMParams", "solve_spm"]

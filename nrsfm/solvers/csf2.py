@@ -77,11 +77,18 @@ def auto_rank(w: np.ndarray, energy: float = 0.995, k_min: int = 2, k_max: int =
     return k_max
 
 
-def recover_cameras(pi: np.ndarray, starts: int, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """`(F, 3, 3)` rotations from the rank-3K factor ``pi`` `(F, 2, 3K)`, and the final residual."""
+def refine_triple(pi: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, float]:
+    """Levenberg-Marquardt on the scale-invariant orthonormality residual of ``pi @ G``.
+
+    Args:
+        pi: `(F, 2, 3K)` rank-3K factor; g0: `(3K, 3)` start.
+
+    Returns:
+        The refined `(3K, 3)` triple and the final cost (0 for exact data).
+    """
     import scipy.optimize
 
-    n_frames, _, r = pi.shape
+    r = pi.shape[2]
 
     def residual(g_flat: np.ndarray) -> np.ndarray:
         m = pi @ g_flat.reshape(r, 3)  # (F, 2, 3)
@@ -90,19 +97,23 @@ def recover_cameras(pi: np.ndarray, starts: int, rng: np.random.Generator) -> tu
         den = na + nb + 1e-300
         return np.concatenate([(na - nb) / den, 2 * (a * b).sum(1) / den])
 
-    best = None
+    res = scipy.optimize.least_squares(residual, g0.ravel(), method="lm", max_nfev=2000, xtol=1e-12, ftol=1e-12)
+    return res.x.reshape(r, 3), float(res.cost)
+
+
+def recover_cameras(pi: np.ndarray, starts: int, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """`(F, 3, 3)` rotations from the rank-3K factor ``pi`` `(F, 2, 3K)` (multi-start
+    :func:`refine_triple`), and the final residual."""
+    r = pi.shape[2]
+    best_g, best_cost = None, np.inf
     for s in range(starts):
-        if s == 0:  # the leading triple of the factorisation
-            g0 = np.eye(r, 3)
-        else:
-            g0 = rng.standard_normal((r, 3))
-        res = scipy.optimize.least_squares(residual, g0.ravel(), method="lm", max_nfev=2000, xtol=1e-12,
-                                           ftol=1e-12)
-        if best is None or res.cost < best.cost:
-            best = res
-    m = pi @ best.x.reshape(r, 3)
+        g0 = np.eye(r, 3) if s == 0 else rng.standard_normal((r, 3))  # the leading triple first
+        g, cost = refine_triple(pi, g0)
+        if cost < best_cost:
+            best_g, best_cost = g, cost
+    m = pi @ best_g
     scale = np.linalg.norm(m, axis=2, keepdims=True).mean(axis=1, keepdims=True)  # (F, 1, 1)
-    return complete_rotation(m / np.maximum(scale, 1e-300)), float(best.cost)
+    return complete_rotation(m / np.maximum(scale, 1e-300)), best_cost
 
 
 @register("csf2", CSF2Params, "column space fitting with complementary rank-3 spaces and DCT trajectories "
