@@ -94,11 +94,12 @@ def test_info_json_and_synth(tmp_path, capsys):
 def test_methods_and_demo(tmp_path, capsys):
     code, out, _ = _run(capsys, "methods")
     assert code == 0 and "rank3" in out
-    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"))
+    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"), "--methods", "rank3")
     assert code == 0, err
     assert "| rigid | 200 x 30 | rank3 |" in out
     assert any(p.suffix == ".png" for p in (tmp_path / "demo").iterdir())
     _one_line_error(*_run(capsys, "demo", "--out", str(tmp_path / "demo"))[::2], "not empty")
+    _one_line_error(*_run(capsys, "demo", "--methods", "nope")[::2], "method: expected one of")
 
 
 def test_console_script_entry_point():
