@@ -68,8 +68,6 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
         The written PNG path. Missing 2D points are drawn as red crosses; the
         reconstruction is globally rotated onto the ground truth for display.
     """
-    from nrsfm.io import atomic_write
-
     plt = _pyplot()
     if frames is None:
         frames = sorted(set(np.linspace(0, seq.n_frames - 1, min(4, seq.n_frames)).astype(int).tolist()))
@@ -99,19 +97,12 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
             ax.tick_params(labelsize=5)
             c += 1
     fig.suptitle(title or seq.name, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    with atomic_write(path, overwrite=overwrite) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path, overwrite)
 
 
 def plot_error_curve(curves: dict[str, np.ndarray], path: str | os.PathLike, *, ylabel: str = "error",
                      title: str = "", overwrite: bool = True) -> Path:
     """Per-frame error curves, one line per entry of ``curves`` (`(F,)` arrays)."""
-    from nrsfm.io import atomic_write
-
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 3))
     for label, values in curves.items():
@@ -120,9 +111,19 @@ def plot_error_curve(curves: dict[str, np.ndarray], path: str | os.PathLike, *, 
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7)
+    return _save(fig, path, overwrite)
+
+
+def _save(fig, path: str | os.PathLike, overwrite: bool) -> Path:
+    """Write ``fig`` as PNG atomically (never replacing a file unless ``overwrite``) and close it."""
+    from nrsfm.io import atomic_write
+
+    plt = _pyplot()
     fig.tight_layout()
     path = Path(path)
-    with atomic_write(path, overwrite=overwrite) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    try:
+        with atomic_write(path, overwrite=overwrite) as tmp:
+            fig.savefig(tmp, dpi=90, format="png")
+    finally:
+        plt.close(fig)
     return path

@@ -87,16 +87,22 @@ def rotation_program(pi: np.ndarray, trace_weight: float) -> np.ndarray:
     scale = np.mean((a * a).sum(1) + (b * b).sum(1)) / 2  # keeps the objective's terms comparable
     objective = cp.sum_squares(aqa - bqb) + 4 * cp.sum_squares(aqb) + trace_weight * scale * cp.trace(q)
     problem = cp.Problem(cp.Minimize(objective), [cp.sum(aqa + bqb) / (2 * len(a)) == 1])
+    value = _solve(problem, q, "rotation")
+    return 0.5 * (value + value.T)
+
+
+def _solve(problem, variable, what: str) -> np.ndarray:
+    """Solve a cvxpy problem with Clarabel, falling back to SCS; the variable's value."""
+    import cvxpy as cp
+
     for solver in ("CLARABEL", "SCS"):
         try:
             problem.solve(solver=solver)
-            if q.value is not None:
-                break
+            if variable.value is not None:
+                return variable.value
         except (cp.error.SolverError, ValueError):
             continue
-    if q.value is None:
-        raise SolverError(f"spm: the rotation program failed ({problem.status})")
-    return 0.5 * (q.value + q.value.T)
+    raise SolverError(f"spm: the {what} program failed ({problem.status})")
 
 
 def _polar(m: np.ndarray) -> np.ndarray:
@@ -140,17 +146,7 @@ def shape_cvxpy(w: np.ndarray, rot: np.ndarray) -> np.ndarray:
     r3 = rot[:, 2]  # (F, 3)
     z = cp.Variable((n_frames, n_points))
     blocks = [base[:, i, :] + cp.multiply(np.repeat(r3[:, i:i + 1], n_points, axis=1), z) for i in range(3)]
-    problem = cp.Problem(cp.Minimize(cp.normNuc(cp.hstack(blocks))))
-    for solver in ("CLARABEL", "SCS"):
-        try:
-            problem.solve(solver=solver)
-            if z.value is not None:
-                break
-        except (cp.error.SolverError, ValueError):
-            continue
-    if z.value is None:
-        raise SolverError(f"spm: the shape program failed ({problem.status})")
-    return z.value
+    return _solve(cp.Problem(cp.Minimize(cp.normNuc(cp.hstack(blocks)))), z, "shape")
 
 
 def shape_fpc(w: np.ndarray, rot: np.ndarray, *, tau: float = 0.2, outer: int = 20, inner: int = 300,
