@@ -176,3 +176,31 @@ def test_spm_sign_resolution_does_not_use_temporal_order():
     reference = np.einsum("fij,jk->fik", truth, h)
     fixed = resolve_signs(flipped, reference)
     np.testing.assert_allclose(fixed, truth, atol=1e-9)
+
+
+# ------------------------------------------------------------------ EM-PND
+def test_empnd_recovers_a_noise_free_low_rank_sequence():
+    seq = lowrank_sequence(200, 30, 3, seed=0)
+    rec = solve(seq, "empnd", K=3)
+    assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+
+
+def test_empnd_with_missing_points_and_degenerate_frames():
+    seq = lowrank_sequence(120, 25, 2, seed=2, missing=0.2)
+    rec = solve(seq, "empnd", K=2)
+    assert e3d(rec.points_3d, seq.points_3d) < 0.02
+    vis = np.ones((10, 8))
+    vis[3, :6] = 0
+    with pytest.raises(SolverError, match="frame 3 has fewer than 3 visible points"):
+        solve(lowrank_sequence(10, 8, 2, seed=0).replace(visibility=vis), "empnd")
+    two = solve(lowrank_sequence(2, 10, 1, seed=0), "empnd", max_iter=20)
+    assert np.isfinite(two.points_3d).all()
+
+
+def test_every_registered_solver_returns_finite_shapes_on_a_rigid_sequence():
+    from nrsfm.solvers import available_solvers
+
+    seq = lowrank_sequence(12, 9, 1, seed=4)
+    for name in available_solvers():
+        rec = solve(seq, name)
+        assert np.isfinite(rec.points_3d).all() and rec.points_3d.shape == (12, 9, 3), name
