@@ -22,14 +22,14 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "frames": data.description})
     model_path = cache / "model.pt"
-    if model_path.exists():
+    if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)
         info = json.loads((cache / "train.json").read_text())
         ctx.timings[f"{name} ({split.input_type})"] = {"cached": True, "train_seconds": info["seconds"],
                                                        "iterations": info["iterations_run"], "cache": str(cache)}
     else:
-        res = train(data, config, cache, resume=True, progress=ctx.progress)
+        res = train(data, config, cache, resume=not ctx.retrain, progress=ctx.progress)
         model = res.model
         ctx.timings[f"{name} ({split.input_type})"] = {
             "cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,

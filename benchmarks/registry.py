@@ -46,13 +46,18 @@ class Split:
 
 @dataclass
 class RunContext:
-    """Options of one harness run: output folder (caches), iterations, seed, progress bars."""
+    """Options of one harness run: output folder (caches), iterations, seed, progress bars.
+
+    By default a cached model is reused and an interrupted training resumes
+    from its checkpoint; ``retrain`` ignores both and trains from scratch.
+    """
 
     out_dir: Path
     iterations: int
     seed: int = 0
     progress: bool = True
     device: str = "auto"
+    retrain: bool = False
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

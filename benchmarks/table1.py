@@ -2,6 +2,7 @@
 
     python -m benchmarks.table1 [--data synthetic|h36m] [--root DIR] [--input gt-ortho|gt-persp|sh|all]
                                 [--quick] [--out DIR] [--iterations N] [--methods NAME,NAME] [--stride auto|1|5]
+                                [--resume | --retrain]
 
 Protocol (PRN official test code, see nrsfm.metrics.mpjpe_prn): train on S1,
 S5, S6, S7, S8 and test on S9 and S11 (whichever are present; the output
@@ -182,6 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--resume", dest="retrain", action="store_false",
+                   help="reuse cached models and resume interrupted training from its checkpoint (the default)")
+    p.add_argument("--retrain", dest="retrain", action="store_true",
+                   help="ignore cached models and checkpoints; train from scratch")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
@@ -202,7 +207,7 @@ def _run(args: argparse.Namespace) -> int:
             raise ValidationError(f"--methods: expected names among {list(registry)}, got {n!r}")
     out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}")
     ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
-                     device=args.device)
+                     device=args.device, retrain=args.retrain)
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
