@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="reuse cached models and resume interrupted training from its checkpoint (the default)")
     p.add_argument("--retrain", dest="retrain", action="store_true",
                    help="ignore cached models and checkpoints; train from scratch")
+    p.set_defaults(retrain=False)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:

@@ -1,0 +1,51 @@
+"""The benchmark scripts run end to end on tiny inputs and write what they promise."""
+
+import json
+
+import numpy as np
+import scipy.io
+
+from benchmarks import classic, table1
+from nrsfm.datasets.synthetic import lowrank_sequence
+
+
+def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
+    out = tmp_path / "t1"
+    args = ["--iterations", "12", "--out", str(out), "--no-progress", "--input", "gt-ortho"]
+    assert table1.main(args) == 0
+    text = capsys.readouterr().out
+    assert "| PRN-FCN (ours) |" in text and "| PRN w/o reg (ours) |" in text and "144.8" in text
+    data = json.loads((out / "table1.json").read_text())
+    assert {r["method"] for r in data["results"]} == {"PRN-FCN", "PRN w/o reg"}
+    assert data["meta"]["git"] and data["meta"]["iterations"] == 12
+    for r in data["results"]:
+        assert np.isfinite(r["per_action"]["Avg"]["mpjpe_mm"])
+    assert (out / "table1.csv").exists() and (out / "table1.png").exists()
+    # a second run evaluates the cached models without training
+    assert table1.main(args) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert all(t["cached"] for t in meta["timings"].values())
+
+
+def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
+    assert table1.main(["--data", "h36m", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "h36m: expected a dataset folder" in capsys.readouterr().err
+
+
+def test_classic_on_small_files(tmp_path, capsys):
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    seq = lowrank_sequence(20, 10, 1, seed=0)
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    out = tmp_path / "out"
+    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3,pr", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| tiny | rank3 |" in text and "| tiny | pr |" in text
+    rows = json.loads((out / "classic.json").read_text())["rows"]
+    bound = {"rank3": 1e-6, "pr": 1e-3}
+    assert all(r["status"] == "ok" and r["e3d_camera"] < bound[r["method"]] for r in rows)
+    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3", "--missing", "0.2",
+                         "--out", str(out)]) == 0
+    assert "not run: rank3: expected complete tracks" in capsys.readouterr().out
+    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "nope"]) == 2
