@@ -107,7 +107,8 @@ def _atomic_save(obj: dict, path: Path) -> None:
 
 @dataclass
 class TrainResult:
-    """A trained model and its history (loss every ``log_every`` iterations) and timings."""
+    """A trained model, its history (loss every ``log_every`` iterations) and timings
+    (``benchmarks.speed_prn`` measures the loss's own share of an iteration)."""
 
     model: PRNFCN
     config: TrainConfig
@@ -115,7 +116,6 @@ class TrainResult:
     seconds: float
     iterations_run: int
     iterations_per_second: float
-    loss_seconds: float
 
 
 def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str | os.PathLike | None = None, *,
@@ -133,8 +133,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
             call, as an interruption would; a later call with ``resume`` goes on.
 
     Returns:
-        :class:`TrainResult`; ``loss_seconds`` is the time spent in the PR
-        loss forward + backward (for the speed report).
+        :class:`TrainResult`.
     """
     from tqdm.auto import tqdm
 
@@ -168,7 +167,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
     model.train()
     if start >= config.phase_boundary:
         _freeze_bn_stats(model)
-    t_begin, loss_time = time.perf_counter(), 0.0
+    t_begin = time.perf_counter()
     bar = tqdm(total=config.iterations, initial=start, desc=f"PRN lam={config.lam}", disable=not progress,
                mininterval=2.0)
     end = config.iterations if stop_after is None else min(config.iterations, start + stop_after)
@@ -187,11 +186,9 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
             if data.input_points is not None and len(data.input_points) == yw.shape[1]:
                 xw = xw * keep
         pred = model(x_all[idx], xw)
-        t0 = time.perf_counter()
         loss = pr_loss(pred, y_all[idx], yw, lam=config.lam, group_size=config.group_size, parts=parts)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        loss_time += time.perf_counter() - t0  # loss forward + its (analytic) backward + network backward
         if not torch.isfinite(loss):
             where = f"; the last good checkpoint is {ckpt_path}" if ckpt_path and ckpt_path.exists() else ""
             raise TrainingError(f"the loss became {loss.item()} at iteration {it}{where}; lower the learning rate "
@@ -217,7 +214,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
                                                     "history": history[-5:]}, indent=2))
     model.eval()
     return TrainResult(model=model, config=config, history=history, seconds=seconds, iterations_run=run,
-                       iterations_per_second=run / seconds if seconds > 0 else float("nan"), loss_seconds=loss_time)
+                       iterations_per_second=run / seconds if seconds > 0 else float("nan"))
 
 
 def load_model(path: str | os.PathLike, device: str = "auto") -> PRNFCN:

@@ -96,9 +96,6 @@ def solve_rank3(seq: Sequence, params: Rank3Params) -> Reconstruction:
     sq = np.sqrt(s[:r])
     m = (u[:, :r] * sq).reshape(seq.n_frames, 2, r)  # (F, 2, 3)
     shape = sq[:, None] * vt[:r]  # (3, P)
-    if s[2] <= 1e-12 * s[0]:
-        # planar (or collinear) input: the third direction is unobservable, its depth stays 0
-        pass
     q = metric_upgrade(m, scaled=scaled, min_eigenvalue=params.min_eigenvalue)
     m = m @ q
     shape = np.linalg.solve(q, shape)  # (3, P)
