@@ -34,7 +34,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 
 _EPS_CACHE: dict = {}
 
@@ -267,10 +266,3 @@ def smoothed_nuclear_norm_and_gradient(z, smoothing: float):
     root = torch.sqrt(s * s + smoothing * smoothing)
     grad = (u * (s / root).unsqueeze(-2)) @ vt
     return root.sum(dim=-1), grad.transpose(1, 2).reshape(z.shape)
-
-
-def numpy_align(x: np.ndarray, **kwargs) -> tuple[np.ndarray, np.ndarray]:
-    """NumPy convenience: `(n, 3, P)` shapes -> aligned `(n, 3, P)` and rotations `(n, 3, 3)`."""
-    torch = _torch()
-    al = align(torch.as_tensor(x, dtype=torch.float64)[None], **kwargs)
-    return al.aligned[0].numpy(), al.rotations[0].numpy()

@@ -5,8 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from nrsfm.procrustes import (align, align_vjp, smoothed_nuclear_norm_and_gradient, solve_stationarity,
-                              stationarity_jacobian)
+from nrsfm.procrustes import (align, align_vjp, apply_stationarity_jacobian, smoothed_nuclear_norm_and_gradient,
+                              solve_stationarity, stationarity_jacobian)
 
 
 def _group(n, p=9, seed=0, batch=2):
@@ -36,6 +36,8 @@ def test_woodbury_solve_matches_dense(n):
     torch.testing.assert_close(a, b, atol=1e-10 * a.abs().max().item(), rtol=1e-8)
     jac = stationarity_jacobian(z)
     torch.testing.assert_close(jac, jac.transpose(-1, -2), atol=1e-8 * jac.abs().max().item(), rtol=0)
+    # the matrix-free operator applied to the solution gives the right-hand side back
+    torch.testing.assert_close(apply_stationarity_jacobian(z, b), rhs, atol=1e-8, rtol=1e-8)
 
 
 @pytest.mark.parametrize("method", ["dense", "woodbury"])
