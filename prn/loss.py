@@ -39,14 +39,21 @@ class PRLossParts:
 class _PRLossFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, u, w, lam, parts):  # x (B, n, 3, P), u (B, n, 2, P), w (B, n, P)
-        al = align(x.detach())
-        nuc, sub = nuclear_norm_and_subgradient(al.aligned)
         w2 = (w * w).unsqueeze(2)  # (B, n, 1, P)
         resid = x[:, :, :2].detach() - u  # (B, n, 2, P)
         data = 0.5 * (resid * resid * w2).sum()
+        ctx.lam = lam
+        ctx.shape = x.shape
+        if lam == 0:  # PRN w/o reg: the alignment would not enter the cost or the gradient
+            ctx.save_for_backward(resid, w2)
+            if parts is not None:
+                parts.data, parts.nuclear = float(data), float("nan")
+                parts.align_iterations, parts.align_converged = 0, True
+            return data
+        al = align(x.detach())
+        nuc, sub = nuclear_norm_and_subgradient(al.aligned)
         ctx.save_for_backward(resid, w2, sub)
         ctx.al = al
-        ctx.lam = lam
         if parts is not None:
             parts.data, parts.nuclear = float(data), float(nuc.sum())
             parts.align_iterations, parts.align_converged = al.iterations, al.converged
@@ -54,11 +61,11 @@ class _PRLossFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        resid, w2, sub = ctx.saved_tensors
-        grad = torch.zeros_like(sub)
+        resid, w2 = ctx.saved_tensors[:2]
+        grad = resid.new_zeros(ctx.shape)
         grad[:, :, :2] = resid * w2  # eq. 13
         if ctx.lam != 0:
-            grad = grad + ctx.lam * align_vjp(sub, ctx.al)  # eq. 5-11 and 15
+            grad = grad + ctx.lam * align_vjp(ctx.saved_tensors[2], ctx.al)  # eq. 5-11 and 15
         return grad_out * grad, None, None, None, None
 
 
