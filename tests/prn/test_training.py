@@ -112,3 +112,11 @@ def test_missing_points_training_runs(small_set):
     res = train(small_set, TrainConfig(iterations=5, width=32, group_size=8, groups=2, missing_points=0.2),
                 progress=False)
     assert np.isfinite(res.history[-1]["loss"])
+
+
+def test_training_leaves_denormals_enabled(small_set):
+    import sys
+
+    train(small_set, TrainConfig(iterations=2, width=16, group_size=8, groups=1), progress=False)
+    assert (torch.tensor([sys.float_info.min], dtype=torch.float64) / 4).item() > 0  # subnormals representable
+    assert np.float64(sys.float_info.min) / 4 > 0
