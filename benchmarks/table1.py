@@ -248,7 +248,8 @@ def _run(args: argparse.Namespace) -> int:
                 rows.append([f"{name} (paper)"] + [_paper_cell(paper, c) for c in cols] + [paper[-1], paper[-1]])
         for (pname, pinp), paper in PAPER.items():
             if pinp == inp and pname not in names:
-                rows.append([f"{pname} (paper; not implemented here yet)"]
+                why = "not selected with --methods" if pname in registry else "not implemented here yet"
+                rows.append([f"{pname} (paper; {why})"]
                             + ([_paper_cell(paper, c) for c in cols] if args.data == "h36m" else [None] * len(cols))
                             + [None, paper[-1]])
         md.append(markdown_table(header, rows))
