@@ -221,7 +221,6 @@ def align_vjp(grad_aligned, al: Alignment, *, method: str = "auto"):
     Exact at a converged alignment (see the module docstring). ``method``
     selects the linear solver (:func:`solve_stationarity`).
     """
-    torch = _torch()
     z, rot = al.aligned, al.rotations
     h = vee_antisym(grad_aligned @ z.transpose(-1, -2))  # (B, n, 3)
     mu = solve_stationarity(z, h, method=method)

@@ -187,3 +187,35 @@ def _coerce(key: str, raw: str, hint: Any) -> Any:
             continue
     raise ValidationError(f"--set {key}: expected {' or '.join(getattr(k, '__name__', str(k)) for k in kinds)}, "
                           f"got {raw!r}")
+
+
+def require_visible_points(seq: Sequence, method: str, minimum: int = 3) -> np.ndarray:
+    """`(F, P)` visibility mask; raises a :class:`SolverError` naming the first frame with fewer than
+    ``minimum`` visible points."""
+    vis = seq.weights > 0
+    short = vis.sum(axis=1) < minimum
+    if short.any():
+        f = int(np.argmax(short))
+        raise SolverError(f"{method}: frame {f} has fewer than {minimum} visible points; drop it "
+                          "(seq.select_frames) first")
+    return vis
+
+
+def impute_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, iters: int = 200, tol: float = 1e-9) -> np.ndarray:
+    """Fill the entries of `(2F, P)` ``w`` where ``mask`` is False by iterative rank-``rank`` SVD imputation.
+
+    Rows are centred with the visible entries first (orthographic translation).
+    """
+    filled = np.where(mask, w, 0.0)
+    row_mean = (filled.sum(axis=1) / np.maximum(mask.sum(axis=1), 1))[:, None]
+    filled = np.where(mask, w, row_mean)
+    for _ in range(iters):
+        centred = filled - filled.mean(axis=1, keepdims=True)
+        u, s, vt = np.linalg.svd(centred, full_matrices=False)
+        approx = (u[:, :rank] * s[:rank]) @ vt[:rank] + filled.mean(axis=1, keepdims=True)
+        new = np.where(mask, w, approx)
+        change = np.linalg.norm(new - filled) / max(np.linalg.norm(new), 1e-300)
+        filled = new
+        if change < tol:
+            break
+    return filled

@@ -36,7 +36,7 @@ import numpy as np
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register
+from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
 
 
 @dataclass(frozen=True)
@@ -120,15 +120,12 @@ def recover_cameras(pi: np.ndarray, starts: int, rng: np.random.Generator) -> tu
                               "(Gotardo & Martinez, CVPR 2011); occlusion-aware", handles_missing=True)
 def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     """CSF2 on an orthographic sequence (missing points allowed). See the module docstring."""
-    from nrsfm.solvers.pr import impute_lowrank
 
     if seq.projection != "orthographic":
         raise SolverError(f"csf2: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = seq.weights > 0  # (F, P)
-    if (vis.sum(axis=1) < 3).any():
-        f = int(np.argmax(vis.sum(axis=1) < 3))
-        raise SolverError(f"csf2: frame {f} has fewer than 3 visible points; drop it (seq.select_frames) first")
+    require_visible_points(seq, "csf2")
     w = seq.measurement_matrix()  # (2F, P)
     mask = np.repeat(vis, 2, axis=0)  # (2F, P)
     k = params.K or auto_rank(impute_lowrank(w, mask, 9) if not vis.all() else w - w.mean(1, keepdims=True))

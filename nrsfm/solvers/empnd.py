@@ -31,7 +31,7 @@ import numpy as np
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register
+from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
 
 
 @dataclass(frozen=True)
@@ -88,16 +88,13 @@ def _procrustean_projection(modes: np.ndarray, mean: np.ndarray) -> np.ndarray:
 def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     """EM-PND on an orthographic sequence (missing points allowed). See the module docstring."""
     from nrsfm.solvers.csf2 import auto_rank
-    from nrsfm.solvers.pr import impute_lowrank
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
     if seq.projection != "orthographic":
         raise SolverError(f"empnd: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = (seq.weights > 0).astype(np.float64)  # (F, P)
-    if (vis.sum(axis=1) < 3).any():
-        f = int(np.argmax(vis.sum(axis=1) < 3))
-        raise SolverError(f"empnd: frame {f} has fewer than 3 visible points; drop it (seq.select_frames) first")
+    require_visible_points(seq, "empnd")
     w = seq.points_2d.copy()  # (F, P, 2)
     wm = seq.measurement_matrix()
     filled = impute_lowrank(wm, np.repeat(vis > 0, 2, axis=0), 9) if vis.min() == 0 else wm

@@ -28,7 +28,7 @@ import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register
+from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
 
 
 @dataclass(frozen=True)
@@ -60,26 +60,6 @@ class PRParams:
             raise ValidationError(f"stages, max_iter: expected >= 1, got {self.stages}, {self.max_iter}")
 
 
-def impute_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, iters: int = 200, tol: float = 1e-9) -> np.ndarray:
-    """Fill the entries of `(2F, P)` ``w`` where ``mask`` is False by iterative rank-``rank`` SVD imputation.
-
-    Rows are centred with the visible entries first (orthographic translation).
-    """
-    filled = np.where(mask, w, 0.0)
-    row_mean = (filled.sum(axis=1) / np.maximum(mask.sum(axis=1), 1))[:, None]
-    filled = np.where(mask, w, row_mean)
-    for _ in range(iters):
-        centred = filled - filled.mean(axis=1, keepdims=True)
-        u, s, vt = np.linalg.svd(centred, full_matrices=False)
-        approx = (u[:, :rank] * s[:rank]) @ vt[:rank] + filled.mean(axis=1, keepdims=True)
-        new = np.where(mask, w, approx)
-        change = np.linalg.norm(new - filled) / max(np.linalg.norm(new), 1e-300)
-        filled = new
-        if change < tol:
-            break
-    return filled
-
-
 @register("pr", PRParams, "Procrustean regression: low-rank aligned shapes by analytic-gradient L-BFGS "
                           "(Park et al., TIP 2018)", handles_missing=True)
 def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
@@ -96,10 +76,7 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     n_frames, n_points = seq.n_frames, seq.n_points
     if n_points < 4:
         raise SolverError(f"pr: expected at least 4 points, got {n_points}")
-    visible = seq.weights > 0  # (F, P)
-    if (visible.sum(axis=1) < 3).any():
-        f = int(np.argmax(visible.sum(axis=1) < 3))
-        raise SolverError(f"pr: frame {f} has fewer than 3 visible points; drop it (seq.select_frames) first")
+    visible = require_visible_points(seq, "pr")  # (F, P)
     w = seq.measurement_matrix()  # (2F, P)
     if not visible.all():
         mask = np.repeat(visible, 2, axis=0)
