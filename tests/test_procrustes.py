@@ -6,7 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from nrsfm.procrustes import (align, align_vjp, apply_stationarity_jacobian, smoothed_nuclear_norm_and_gradient,
-                              solve_stationarity, stationarity_jacobian)
+                              solve_stationarity, stationarity_jacobian, vee_antisym)
 
 
 def _group(n, p=9, seed=0, batch=2):
@@ -25,6 +25,27 @@ def test_alignment_recovers_rotations_of_a_rigid_shape():
     z = al.aligned[0]
     torch.testing.assert_close(z, z[:1].expand_as(z), atol=1e-9, rtol=0)  # all frames identical after alignment
     np.testing.assert_allclose(torch.linalg.det(al.rotations).numpy(), 1.0)
+
+
+@pytest.mark.parametrize("n", [2, 4, 32])
+def test_newton_alignment_reaches_the_sweep_fixed_point_in_fewer_steps(n):
+    x = _group(n, seed=10 + n)
+    sweeps = align(x, newton=False, max_iter=2000, tol=1e-13)
+    fast = align(x, newton=True, tol=1e-13)
+    assert sweeps.converged and fast.converged
+    assert fast.iterations <= sweeps.iterations
+
+    def spread(al):  # the GPA cost, invariant to the gauge (a common rotation)
+        z = al.aligned
+        return ((z - z.mean(dim=1, keepdim=True)) ** 2).sum((1, 2, 3))
+
+    torch.testing.assert_close(spread(fast), spread(sweeps), rtol=1e-10, atol=0)
+    # same aligned shapes up to one common rotation per group: the pairwise inner products agree
+    g_fast = torch.einsum("bnap,bmaq->bnmpq", fast.aligned, fast.aligned)
+    g_sweep = torch.einsum("bnap,bmaq->bnmpq", sweeps.aligned, sweeps.aligned)
+    torch.testing.assert_close(g_fast, g_sweep, atol=1e-8, rtol=0)
+    stationarity = vee_antisym(fast.aligned @ fast.aligned.sum(1, keepdim=True).transpose(-1, -2))
+    assert stationarity.abs().max() < 1e-9
 
 
 @pytest.mark.parametrize("n", [3, 20, 80])
