@@ -1,6 +1,6 @@
 """The classic NRSfM benchmark: every registered solver on every CMU sequence.
 
-    python -m benchmarks.classic [--root DIR] [--jobs N] [--methods a,b] [--missing 0.2] [--out DIR]
+    python -m benchmarks.classic [--root DIR] [--jobs N] [--methods a,b] [--missing 0.2] [--long 3000] [--out DIR]
 
 Reads every `.mat` under ``DIR/nrsfm`` (default ``$NRSFM_DATA/nrsfm``; Akhter
 and PND layouts), solves each with every registered solver (in parallel over
@@ -10,6 +10,8 @@ sequence and method the e3D in the camera frame, the e3D in the object frame
 (where the ground truth has a world frame), the normalised error and the run
 time, with the reference numbers of the authors' code (NOTES.md) beside them.
 ``--missing 0.2`` marks that fraction of entries missing (fixed seed) first.
+``--long 3000`` adds a synthetic 3000-frame, 17-point sequence (the speed
+target: 120 s per solver; drink's is 60 s) and a speed table.
 Also written as CSV and JSON.
 """
 
@@ -64,13 +66,22 @@ def drop_entries(seq, fraction: float):
     return seq.replace(visibility=vis)
 
 
+def long_sequence(n_frames: int):
+    """The speed case of the issue: a synthetic ``n_frames`` x 17-point low-rank (K = 3) sequence, smooth cameras."""
+    from nrsfm.datasets.synthetic import lowrank_sequence
+
+    return lowrank_sequence(n_frames, 17, 3, cameras="smooth", seed=0, name=f"synthetic-{n_frames}x17")
+
+
 def solve_sequence(path: str, methods: list[str], missing: float) -> list[dict]:
-    """All methods on one sequence file; one result row per method (errors recorded, never raised)."""
+    """All methods on one sequence (a file, or ``synthetic:F`` for :func:`long_sequence`); one result row per
+    method (errors recorded, never raised)."""
     import nrsfm
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d, normalized_error
 
-    seq = drop_entries(nrsfm.load_sequence(path), missing)
+    seq = long_sequence(int(path.split(":")[1])) if path.startswith("synthetic:") else nrsfm.load_sequence(path)
+    seq = drop_entries(seq, missing)
     rows = []
     for m in methods:
         row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
@@ -105,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
     p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
     p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
+    p.add_argument("--long", type=int, default=3000,
+                   help="also time every solver on a synthetic LONG x 17-point sequence (0: skip)")
     p.add_argument("--out", default=None, help="output folder (default: runs/classic[-missingX])")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
@@ -127,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     log.info("classic: %d sequences x %s, missing %.0f%%, %d jobs", len(files), methods, 100 * args.missing,
              args.jobs)
-    per_seq = Parallel(n_jobs=args.jobs)(delayed(solve_sequence)(str(f), methods, args.missing) for f in files)
+    jobs = ([f"synthetic:{args.long}"] if args.long > 0 else []) + [str(f) for f in files]  # the longest first
+    per_seq = Parallel(n_jobs=args.jobs)(delayed(solve_sequence)(j, methods, args.missing) for j in jobs)
     rows = [r for rs in per_seq for r in rs]
     table, verdicts = [], []
     for rs in per_seq:
@@ -157,6 +171,13 @@ def main(argv: list[str] | None = None) -> int:
               "reference e3D cam [obj] / NE", "ref. time (s)"]
     text = [f"### Classic NRSfM benchmark ({folder}, {100 * args.missing:.0f}% missing), e3D and normalised error "
             "(camera frame unless stated), 2 CPU cores\n", markdown_table(header, table)]
+    limits = {"drink": 60.0, f"synthetic-{args.long}x17": 120.0}
+    speed = [[r["sequence"], r["method"], f"{r['seconds']:.1f}", f"{limits[r['sequence']]:.0f}",
+              "yes" if r["seconds"] <= limits[r["sequence"]] else "no"]
+             for r in rows if r["sequence"] in limits and r["status"] == "ok"]
+    if speed:
+        text += ["\nSpeed targets (2 CPU cores; jobs run side by side share them):\n",
+                 markdown_table(["sequence", "method", "time (s)", "limit (s)", "within"], speed)]
     if verdicts:
         text += ["\nBest of ours vs best published (camera-frame e3D, authors' code; NOTES.md):\n",
                  markdown_table(["sequence", "our best", "e3D", "best published", "ours better"], verdicts)]

@@ -39,13 +39,19 @@ def test_classic_on_small_files(tmp_path, capsys):
     seq = lowrank_sequence(20, 10, 1, seed=0)
     scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
     out = tmp_path / "out"
-    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3,pr", "--out", str(out)]) == 0
+    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3,pr", "--long", "0",
+                         "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| tiny | rank3 |" in text and "| tiny | pr |" in text
     rows = json.loads((out / "classic.json").read_text())["rows"]
     bound = {"rank3": 1e-6, "pr": 1e-3}
     assert all(r["status"] == "ok" and r["e3d_camera"] < bound[r["method"]] for r in rows)
     assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3", "--missing", "0.2",
-                         "--out", str(out)]) == 0
+                         "--long", "0", "--out", str(out)]) == 0
     assert "not run: rank3: expected complete tracks" in capsys.readouterr().out
     assert classic.main(["--root", str(tmp_path / "data"), "--methods", "nope"]) == 2
+    # the synthetic long sequence (the speed target) gets a row and a speed table
+    assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3", "--long", "60",
+                         "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| synthetic-60x17 | rank3 |" in text and "Speed targets" in text
