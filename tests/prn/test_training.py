@@ -62,6 +62,26 @@ def test_cnn_head_with_a_small_backbone():
     assert net(torch.randn(2, 3, 34, 34)).shape == (2, 17, 3)
 
 
+def test_cnn_with_the_torchvision_resnet50_trains_with_the_pr_loss():
+    """Runs where torchvision imports beside the installed torch (not the on-disk CPU wheel of CI; checked in a
+    venv with torch 2.14.1 + torchvision 0.29.1: forward, PR loss and backward through the full backbone)."""
+    try:
+        import torchvision  # noqa: F401
+        torchvision.models.resnet50()
+    except Exception as exc:  # ImportError or an operator mismatch ('torchvision::nms does not exist')
+        pytest.skip(f"torchvision unusable here: {exc}")
+    from prn.loss import pr_loss
+
+    torch.manual_seed(0)
+    net = PRNCNN(17).train()
+    pred = net(torch.randn(4, 3, 224, 224))
+    assert pred.shape == (4, 17, 3)
+    pr_loss(pred, 0.2 * torch.randn(4, 17, 2), lam=0.05, group_size=4).backward()
+    grads = [p.grad for p in net.backbone.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
 def test_training_reduces_the_loss_and_checkpoints_resume(small_set, tmp_path):
     cfg = TrainConfig(iterations=40, width=64, lr=1e-3, lr_step=20, checkpoint_every=20, group_size=8, groups=2)
     full = train(small_set, cfg, tmp_path / "a", progress=False, log_every=1)
