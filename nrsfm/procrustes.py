@@ -195,22 +195,16 @@ def stationarity_jacobian(z):
     built from one `(3n, 3n)` Gram product and in-place edits of its diagonals.
     ``J + E^T E`` is symmetric positive definite at a (non-degenerate) GPA minimum.
     """
+    torch = _torch()
     b, n, _, p = z.shape
     flat = z.reshape(b, 3 * n, p)
     gram = (flat @ flat.transpose(-1, -2)).view(b, n, 3, n, 3)  # [i, a, j, d] = (Z_i Z_j^T)_ad
     jac = gram.transpose(2, 4).contiguous()  # [i, c, j, e] = (Z_j Z_i^T)_ce (the Gram matrix is symmetric)
-    traces = torch_diagonal(jac, 2, 4)  # (B, n, n, 3) view
+    traces = torch.diagonal(jac, dim1=2, dim2=4)  # (B, n, n, 3) view
     traces -= traces.sum(-1, keepdim=True) - 1.0  # - tr(Z_i Z_j^T) I, + I from the gauge E^T E
-    k = gram.sum(3)  # (B, n, 3, 3)  K_i = Z_i M^T
-    blocks = torch_diagonal(jac, 1, 3)  # (B, 3, 3, n) view of the diagonal blocks
-    blocks -= k.permute(0, 2, 3, 1)
-    torch_diagonal(blocks, 1, 2).add_(torch_diagonal(k, -2, -1).sum(-1)[:, :, None])
+    blocks = torch.diagonal(jac, dim1=1, dim2=3)  # (B, 3, 3, n) view of the diagonal blocks
+    blocks += _diagonal_blocks_from_k(gram.sum(3)).permute(0, 2, 3, 1)  # K_i = Z_i M^T = sum_j Z_i Z_j^T
     return jac.view(b, 3 * n, 3 * n)
-
-
-def torch_diagonal(t, dim1, dim2):
-    """A view of the diagonal of ``t`` over ``dim1``/``dim2`` (moved last), writable in place."""
-    return _torch().diagonal(t, dim1=dim1, dim2=dim2)
 
 
 def apply_stationarity_jacobian(z, w):
@@ -223,13 +217,17 @@ def apply_stationarity_jacobian(z, w):
     return diag + coup + w.sum(dim=1, keepdim=True)
 
 
-def _diagonal_blocks(z):
-    """The `(B, n, 3, 3)` blocks ``A_i`` of J from ``v([w_i]_x Z_i M^T)`` alone (no coupling, no gauge)."""
+def _diagonal_blocks_from_k(k):
+    """``tr(K_i) I - K_i`` `(B, n, 3, 3)` for ``K_i = Z_i M^T``: the part of J's diagonal blocks from
+    ``v([w_i]_x Z_i M^T)`` alone (no coupling, no gauge)."""
     torch = _torch()
-    eps = _levi_civita(z)
-    m = z.sum(dim=1)  # (B, 3, P)
-    k = z @ m.unsqueeze(1).transpose(-1, -2)  # (B, n, 3, 3)
-    return torch.einsum("abc,ade,xndb->xnce", eps, eps, k)
+    eye = torch.eye(3, dtype=k.dtype, device=k.device)
+    return torch.diagonal(k, dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye - k
+
+
+def _diagonal_blocks(z):
+    """:func:`_diagonal_blocks_from_k` for aligned shapes ``z`` `(B, n, 3, P)`."""
+    return _diagonal_blocks_from_k(z @ z.sum(dim=1, keepdim=True).transpose(-1, -2))
 
 
 def solve_stationarity(z, rhs, *, method: str = "auto"):

@@ -28,7 +28,7 @@ from nrsfm.procrustes import align, align_vjp, nuclear_norm_and_subgradient
 @dataclass
 class PRLossParts:
     """Detached values of the last evaluation: data term, nuclear norm (both summed over groups),
-    alignment sweeps and whether every alignment converged."""
+    alignment steps (sweeps plus Newton steps) and whether every alignment converged."""
 
     data: float = 0.0
     nuclear: float = 0.0

@@ -42,7 +42,7 @@ from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require
 
 #: K when not given: the Gaussian prior on the coefficients keeps unused modes small, so a generous K is
 #: safe; 10 was the best or near-best of K in {5, 10, 15} on five of the six CMU files
-#: (camera-frame e3D; drink preferred 15). See benchmarks/classic.py.
+#: (camera-frame e3D; drink preferred 15). The sweep is recorded in benchmarks/RESULTS.md.
 DEFAULT_K = 10
 
 
@@ -136,14 +136,13 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
         mean = obj.mean(axis=0)
         _, sv, vt = np.linalg.svd((obj - mean).reshape(n_frames, -1), full_matrices=False)
         modes = (sv[:k, None] / np.sqrt(n_frames) * vt[:k]).reshape(k, 3, n_points)
-        scale = np.sqrt((mean**2).sum() / n_points)
-        modes += 1e-3 * scale * rng.standard_normal(modes.shape)  # modes beyond CSF2's rank start small, not at 0
+        modes += 1e-3 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal(modes.shape)  # none exactly 0
     else:  # the rigid rank-3 factorisation
         rigid = solve_rank3.__wrapped__(Sequence(points_2d=fp2), Rank3Params())
         r2 = rigid.rotations[:, :2].copy()  # (F, 2, 3)
         mean = np.einsum("fpi,fij->jp", rigid.points_3d, rigid.rotations) / n_frames  # (3, P) object frame
-        scale = np.sqrt((mean**2).sum() / n_points)
-        modes = 0.1 * scale * rng.standard_normal((k, 3, n_points))
+        modes = 0.1 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal((k, 3, n_points))
+    scale = np.sqrt((mean**2).sum() / n_points)
     if params.procrustean:
         modes = _procrustean_projection(modes, mean)
     resid0 = w - t[:, None] - np.einsum("fij,jp->fpi", r2, mean)
