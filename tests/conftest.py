@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-settings.register_profile("nrsfm", deadline=None, max_examples=40)
+# derandomize: CI runs the same examples every time (a failure reproduces; no flaky landings)
+settings.register_profile("nrsfm", deadline=None, max_examples=40, derandomize=True)
 settings.load_profile("nrsfm")
 
 
