@@ -120,6 +120,27 @@ def test_csf2_recovers_a_noise_free_low_rank_sequence():
     assert rec.info["camera_residual"] < 1e-10  # exact cameras from the complementary rank-3 space
 
 
+def test_csf2_in_pixel_units_and_with_the_automatic_k():
+    seq = lowrank_sequence(120, 25, 2, seed=1, cameras="random")
+    pixels = seq.replace(points_2d=500 * seq.points_2d + 320.0, points_3d=500 * seq.points_3d)
+    rec = solve(pixels, "csf2", d=60)
+    assert rec.info["K"] == 3  # rank 6 -> ceil(6 / 3) + 1
+    assert rec.converged and e3d(rec.points_3d, pixels.points_3d) < 1e-3
+
+
+def test_csf2_gauss_newton_decreases_the_column_space_cost_to_zero_on_exact_data():
+    from nrsfm.solvers.csf2 import camera_rows, fit_shape_gn
+
+    seq = lowrank_sequence(100, 20, 2, seed=2, cameras="smooth")
+    w = seq.measurement_matrix()
+    wc = w - w.mean(axis=1, keepdims=True)
+    rows, cost, _ = camera_rows(wc)
+    assert cost < 1e-12
+    x, basis, it, converged, rmse = fit_shape_gn(wc, rows, 2, 100)  # d = F: the trajectories are in the basis
+    assert converged and rmse < 1e-5 * np.sqrt((wc**2).mean())
+    np.testing.assert_allclose(x.T @ x, np.eye(2), atol=1e-10)  # QR-orthonormalised
+
+
 def test_csf2_occlusion_aware_and_auto_rank():
     seq = lowrank_sequence(150, 30, 2, seed=3, cameras="random", missing=0.2)
     rec = solve(seq, "csf2", d=75)

@@ -105,7 +105,6 @@ def _procrustean_projection(modes: np.ndarray, mean: np.ndarray) -> np.ndarray:
           handles_missing=True)
 def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     """EM-PND on an orthographic sequence (missing points allowed). See the module docstring."""
-    from nrsfm.solvers.csf2 import auto_rank
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
     if seq.projection != "orthographic":
@@ -128,9 +127,8 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     if init == "csf2":  # cameras, mean and modes from CSF2's reconstruction (PCA of its object-frame shapes)
         from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
 
-        k_init = params.init_K or auto_rank(filled - filled.mean(axis=1, keepdims=True))
-        k_init = max(1, min(k_init, min(2 * n_frames, n_points) // 3))
-        start = solve_csf2.__wrapped__(seq, CSF2Params(K=k_init, seed=params.seed))
+        k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's automatic K
+        start = solve_csf2.__wrapped__(seq, CSF2Params(K=k_init))
         r2 = start.rotations[:, :2].copy()
         obj = start.shapes_object.transpose(0, 2, 1)  # (F, 3, P)
         mean = obj.mean(axis=0)

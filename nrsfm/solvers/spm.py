@@ -183,7 +183,6 @@ def shape_fpc(w: np.ndarray, rot: np.ndarray, *, tau: float = 0.2, outer: int = 
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on a complete orthographic sequence. See the module docstring."""
     from nrsfm.solvers.csf2 import auto_rank
-    from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
     if seq.projection != "orthographic":
         raise SolverError(f"spm: expected orthographic tracks, got {seq.projection}")
@@ -197,13 +196,12 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     q = rotation_program(pi, params.trace_weight)
     evals, evecs = np.linalg.eigh(q)
     g0 = evecs[:, -3:] * np.sqrt(np.maximum(evals[-3:], 1e-12))
-    from nrsfm.solvers.csf2 import refine_triple
+    from nrsfm.solvers.csf2 import camera_rows, refine_triple
 
     g, cam_residual = refine_triple(pi, g0)
     m = pi @ g  # (F, 2, 3)
     rot = complete_rotation(m / np.linalg.norm(m, axis=2, keepdims=True).mean(axis=1, keepdims=True))
-    rigid = solve_rank3.__wrapped__(Sequence(points_2d=w), Rank3Params()).rotations
-    rot = resolve_signs(rot, rigid)
+    rot = resolve_signs(rot, complete_rotation(camera_rows(wm)[0]))
     wf = w.transpose(0, 2, 1)  # (F, 2, P)
     solver = params.shape_solver
     if solver == "auto":
