@@ -332,10 +332,12 @@ def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np
     prev = np.inf
     rmse = _masked_rmse(x, basis)
     for _ in range(n_iter):
-        af = np.einsum("fij,kjp->fipk", rows, basis) * wmask[..., None]  # (F, 2, P, K)
-        ata = np.einsum("fipk,fipl->fkl", af, af)  # (F, K, K)
-        atb = np.einsum("fipk,fip->fk", af, target)  # (F, K)
-        lhs = np.einsum("fa,fb,fkl->akbl", omega, omega, ata).reshape(d * k, d * k)
+        af = (np.einsum("fij,kjp->fipk", rows, basis) * wmask[..., None]).reshape(n_frames, -1, k)  # (F, 2P, K)
+        ata = af.transpose(0, 2, 1) @ af  # (F, K, K)
+        atb = (af.transpose(0, 2, 1) @ target.reshape(n_frames, -1, 1))[..., 0]  # (F, K)
+        # sum_f omega_fa omega_fb ata_f as one matrix product (a three-operand einsum loops in numpy)
+        lhs = (omega.T @ (omega[:, :, None, None] * ata[:, None]).reshape(n_frames, -1)).reshape(d, d, k, k)
+        lhs = lhs.transpose(0, 2, 1, 3).reshape(d * k, d * k)
         rhs = (omega.T @ atb).reshape(d * k)
         x = np.linalg.solve(lhs + 1e-10 * np.trace(lhs) / (d * k) * np.eye(d * k), rhs).reshape(d, k)
         x, _ = np.linalg.qr(x)
