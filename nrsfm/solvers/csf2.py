@@ -92,15 +92,6 @@ def dct_basis(n_frames: int, d: int) -> np.ndarray:
     return basis * np.sqrt(2 / n_frames)
 
 
-def auto_rank(w: np.ndarray, energy: float = 0.995, k_min: int = 2, k_max: int = 8) -> int:
-    s = np.linalg.svd(w, compute_uv=False) ** 2
-    cum = np.cumsum(s) / s.sum()
-    for k in range(k_min, k_max + 1):
-        if cum[min(3 * k, len(cum)) - 1] >= energy:
-            return k
-    return k_max
-
-
 def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6) -> int:
     """CSF2's automatic K for a `(2F, P)` W: ``min(k_max, ceil(r / 3) + 1)`` with ``r`` the numerical rank of the
     centred W (singular values above ``rel_tol`` times the largest), and 3K <= min(2F, P).
@@ -201,19 +192,20 @@ def camera_rows(wc: np.ndarray, energy: float = 1e-4) -> tuple[np.ndarray, float
             + mm[:, 1].T @ (4 * eb[:, None] * b + 2 * ab[:, None] * a)
         return scale * float(ea @ ea + eb @ eb + ab @ ab), scale * grad.ravel()
 
-    if n_cols == 3:  # rigid (rank 3): the metric upgrade of the rigid factorisation
-        res = scipy.optimize.minimize(cost_grad, np.eye(3).ravel(), args=(m,), jac=True, method="BFGS",
+    def fit(q0: np.ndarray) -> tuple[np.ndarray, float]:
+        res = scipy.optimize.minimize(cost_grad, q0.ravel(), args=(m[:, :, :len(q0)],), jac=True, method="BFGS",
                                       options={"gtol": 1e-12, "maxiter": 2000})
-        q, best = res.x.reshape(3, 3), float(res.fun)
+        return res.x.reshape(-1, 3), float(res.fun)
+
+    if n_cols == 3:  # rigid (rank 3): the metric upgrade of the rigid factorisation
+        q, best = fit(np.eye(3))
     else:
         q, best = np.eye(3), np.inf
         while q.shape[0] + 3 <= n_cols:  # grow [Q; 0] three columns at a time while the cost falls
-            mm = m[:, :, :q.shape[0] + 3]
-            res = scipy.optimize.minimize(cost_grad, np.vstack([q, np.zeros((3, 3))]).ravel(), args=(mm,), jac=True,
-                                          method="BFGS", options={"gtol": 1e-12, "maxiter": 2000})
-            if not res.fun < best:
+            new_q, cost = fit(np.vstack([q, np.zeros((3, 3))]))
+            if not cost < best:
                 break
-            q, best = res.x.reshape(-1, 3), float(res.fun)
+            q, best = new_q, cost
     return m[:, :, :q.shape[0]] @ q, best, q.shape[0]
 
 
@@ -235,16 +227,19 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
     omega = dct_basis(n_frames, d) if omega is None else omega  # (F, d)
     bnr = np.einsum("fij,fa->fiaj", rows, omega).reshape(2 * n_frames, 3 * d)  # D (Omega kron I3), cols (a, j)
     btb = bnr.T @ bnr
-    eye3 = np.eye(3)
+
+    def kron_i3(a: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``a @ kron(x, I3)`` for `(R, 3d)` a, without forming the Kronecker product: `(R, 3K)`, columns (k, j)."""
+        return np.tensordot(a.reshape(len(a), d, 3), x, axes=([1], [0])).transpose(0, 2, 1).reshape(len(a), -1)
 
     def factors(x: np.ndarray):
-        m = bnr @ np.kron(x, eye3)  # (2F, 3K), columns (k, j)
+        m = kron_i3(bnr, x)  # (2F, 3K), columns (k, j)
         pinv = np.linalg.pinv(m)
         s = pinv @ wc
-        return m, pinv, s, wc - m @ s
+        return pinv, s, wc - m @ s
 
     x = np.eye(d, k) if x0 is None else x0
-    m, pinv, s, r = factors(x)
+    pinv, s, r = factors(x)
     history = [float(np.sqrt((r**2).mean()))]
     tol_abs = tol * float(np.sqrt((wc**2).mean()))
     delta, it, converged = 1e-4, 0, False
@@ -253,20 +248,20 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
         # H[(a,k),(b,l)] = sum_ij YY[(a,i),(b,j)] (S S^T)[(k,i),(l,j)], YY = Bnr^T (I - M M^+) Bnr
         zz = ((bnr.T @ r) @ s.T).reshape(d, 3, k, 3)
         g = -np.einsum("aiki->ak", zz).ravel()
-        yy = (btb - (bnr.T @ m) @ (pinv @ bnr)).reshape(d, 3, d, 3)
+        yy = (btb - kron_i3(btb, x) @ (pinv @ bnr)).reshape(d, 3, d, 3)  # Bnr^T M = Bnr^T Bnr (X kron I3)
         ss = (s @ s.T).reshape(k, 3, k, 3)
         h = np.tensordot(yy, ss, axes=([1, 3], [1, 3])).transpose(0, 2, 1, 3).reshape(d * k, d * k)
         while True:
             step = np.linalg.lstsq(h + delta * np.eye(d * k), g, rcond=None)[0]
             new_x, _ = np.linalg.qr(x - step.reshape(d, k))  # X is defined up to an invertible k x k factor
             new = factors(new_x)
-            rmse = float(np.sqrt((new[3]**2).mean()))
+            rmse = float(np.sqrt((new[2]**2).mean()))
             if rmse < history[-1]:
                 break
             delta *= 10
             if delta > 1e30:
                 return x, s.reshape(k, 3, n_points), it, True, history[-1]  # no descent direction: a minimum
-        x, (m, pinv, s, r) = new_x, new
+        x, (pinv, s, r) = new_x, new
         delta = max(delta / 100, 1e-20)
         history.append(rmse)
         if it > 1 and history[-3] - history[-1] < tol_abs:
@@ -295,9 +290,10 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     d = min(params.d or max(int(np.ceil(0.1 * n_frames)), k + 1), n_frames)
     full = w if complete else impute_lowrank(w, mask, 3 * k)
     t = full.mean(axis=1, keepdims=True)  # (2F, 1) translations
-    rows, cam_residual, cam_cols = camera_rows(full - t, params.energy)
-    x, basis, it, converged, rmse = fit_shape_gn(full - t, rows, k, d, max_iter=params.max_iter, tol=params.tol)
     omega = dct_basis(n_frames, d)  # (F, d)
+    rows, cam_residual, cam_cols = camera_rows(full - t, params.energy)
+    x, basis, it, converged, rmse = fit_shape_gn(full - t, rows, k, d, max_iter=params.max_iter, tol=params.tol,
+                                                 omega=omega)
     if not complete:
         x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
     shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame

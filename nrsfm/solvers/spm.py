@@ -30,7 +30,7 @@ truncation follows the authors' code.
 
 K: the authors' per-sequence settings (drink 12, pickup 12, yoga 10, stretch
 11, dance 10, face 7, walking 8, shark 4) when the sequence name matches,
-else the automatic rule of CSF2 (99.5% energy).
+else :func:`auto_rank` (the smallest K whose 3K singular values hold 99.5% of the energy).
 """
 
 from __future__ import annotations
@@ -74,6 +74,15 @@ class SPMParams:
             raise ValidationError(f"shape_solver: expected 'auto', 'cvxpy' or 'fpc', got {self.shape_solver!r}")
         if self.K < 0 or not 0 < self.fpc_tau <= 1.9:
             raise ValidationError(f"SPMParams: expected K >= 0 and 0 < fpc_tau <= 1.9, got {self.K}, {self.fpc_tau}")
+
+
+def auto_rank(w: np.ndarray, energy: float = 0.995, k_min: int = 2, k_max: int = 8) -> int:
+    s = np.linalg.svd(w, compute_uv=False) ** 2
+    cum = np.cumsum(s) / s.sum()
+    for k in range(k_min, k_max + 1):
+        if cum[min(3 * k, len(cum)) - 1] >= energy:
+            return k
+    return k_max
 
 
 def rotation_program(pi: np.ndarray, trace_weight: float) -> np.ndarray:
@@ -184,8 +193,6 @@ def shape_fpc(w: np.ndarray, rot: np.ndarray, *, tau: float = 0.2, outer: int = 
 @register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)")
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on a complete orthographic sequence. See the module docstring."""
-    from nrsfm.solvers.csf2 import auto_rank
-
     if seq.projection != "orthographic":
         raise SolverError(f"spm: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
