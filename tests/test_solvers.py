@@ -199,16 +199,17 @@ def test_spm_sign_resolution_does_not_use_temporal_order():
     np.testing.assert_allclose(fixed, truth, atol=1e-9)
 
 
-# ------------------------------------------------------------------ EM-PND
+# ------------------------------------------------------------------ EM-PND (PND2) and EM-PPCA
 def test_empnd_recovers_a_noise_free_low_rank_sequence():
     seq = lowrank_sequence(200, 30, 3, seed=0)
-    rec = solve(seq, "empnd", K=3)
+    rec = solve(seq, "empnd")
     assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+    assert np.isfinite(rec.rotations).all() and rec.iterations >= 2
 
 
 def test_empnd_with_missing_points_and_degenerate_frames():
     seq = lowrank_sequence(120, 25, 2, seed=2, missing=0.2)
-    rec = solve(seq, "empnd", K=2)
+    rec = solve(seq, "empnd")
     assert e3d(rec.points_3d, seq.points_3d) < 0.02
     vis = np.ones((10, 8))
     vis[3, :6] = 0
@@ -216,6 +217,35 @@ def test_empnd_with_missing_points_and_degenerate_frames():
         solve(lowrank_sequence(10, 8, 2, seed=0).replace(visibility=vis), "empnd")
     two = solve(lowrank_sequence(2, 10, 1, seed=0), "empnd", max_iter=20)
     assert np.isfinite(two.points_3d).all()
+
+
+def test_pnd_cost_gradient_matches_finite_differences():
+    import torch
+
+    from nrsfm.solvers.empnd import pnd_cost
+
+    rng = np.random.default_rng(0)
+    n, q = 12, 6
+    mu = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.2 * rng.standard_normal((n, 3, q)))
+    cov = rng.standard_normal((n, 3 * q, 3 * q)) * 0.05
+    cov = torch.from_numpy(cov @ cov.transpose(0, 2, 1))
+    blocks = cov.reshape(n, 3, q, 3, q).permute(0, 1, 3, 2, 4).reshape(n * 9, q * q)
+    mean = mu.mean(dim=0)
+    mean = (mean / mean.norm()).requires_grad_(True)
+    cost, _ = pnd_cost(mean, mu, blocks)
+    (grad,) = torch.autograd.grad(cost, mean)
+    direction = torch.from_numpy(rng.standard_normal((3, q)))
+    eps = 1e-6
+    with torch.no_grad():
+        fd = (pnd_cost(mean + eps * direction, mu, blocks)[0] - pnd_cost(mean - eps * direction, mu, blocks)[0]) / (2 * eps)
+    assert abs(float(fd) - float((grad * direction).sum())) < 1e-6 * max(1.0, abs(float(fd)))
+
+
+def test_emppca_recovers_a_noise_free_low_rank_sequence_and_handles_missing_points():
+    seq = lowrank_sequence(200, 30, 3, seed=0)
+    assert e3d(solve(seq, "emppca", K=3).points_3d, seq.points_3d) < 1e-3
+    seq = lowrank_sequence(120, 25, 2, seed=2, missing=0.2)
+    assert e3d(solve(seq, "emppca", K=2).points_3d, seq.points_3d) < 0.02
 
 
 def test_every_registered_solver_returns_finite_shapes_on_a_rigid_sequence():
