@@ -222,23 +222,55 @@ def test_empnd_with_missing_points_and_degenerate_frames():
 def test_pnd_cost_gradient_matches_finite_differences():
     import torch
 
-    from nrsfm.solvers.empnd import pnd_cost
+    from nrsfm.solvers.empnd import DensePosterior, align, constrained_directions, pnd_cost
 
     rng = np.random.default_rng(0)
     n, q = 12, 6
-    mu = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.2 * rng.standard_normal((n, 3, q)))
-    cov = rng.standard_normal((n, 3 * q, 3 * q)) * 0.05
-    cov = torch.from_numpy(cov @ cov.transpose(0, 2, 1))
-    blocks = cov.reshape(n, 3, q, 3, q).permute(0, 1, 3, 2, 4).reshape(n * 9, q * q)
-    mean = mu.mean(dim=0)
-    mean = (mean / mean.norm()).requires_grad_(True)
-    cost, _ = pnd_cost(mean, mu, blocks)
-    (grad,) = torch.autograd.grad(cost, mean)
+    mu0 = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.2 * rng.standard_normal((n, 3, q)))
+    mean = mu0.mean(dim=0)
+    mean = mean / mean.norm()
+    sr, s = align(mu0, mean)
+    nb = constrained_directions(mean)
+    proj = torch.eye(3 * q, dtype=torch.float64) - nb @ nb.T
+    a = torch.from_numpy(rng.standard_normal((3 * q, 3 * q)))
+    data = torch.from_numpy(rng.standard_normal((n, 3, q)))
+    data[:, 2] = 0.0
+    obs = torch.eye(q, dtype=torch.float64).expand(n, q, q).contiguous()
+    post = DensePosterior(proj @ (a @ a.T) @ proj, sr, s, data, obs, 1e-2)
+    m_var = mean.clone().requires_grad_(True)
+    cost, _ = pnd_cost(m_var, post.mu, post.moment)
+    (grad,) = torch.autograd.grad(cost, m_var)
     direction = torch.from_numpy(rng.standard_normal((3, q)))
     eps = 1e-6
     with torch.no_grad():
-        fd = (pnd_cost(mean + eps * direction, mu, blocks)[0] - pnd_cost(mean - eps * direction, mu, blocks)[0]) / (2 * eps)
+        fd = (pnd_cost(mean + eps * direction, post.mu, post.moment)[0]
+              - pnd_cost(mean - eps * direction, post.mu, post.moment)[0]) / (2 * eps)
     assert abs(float(fd) - float((grad * direction).sum())) < 1e-6 * max(1.0, abs(float(fd)))
+
+
+def test_empnd_complete_posterior_matches_the_dense_one():
+    import torch
+
+    from nrsfm.solvers.empnd import CompletePosterior, DensePosterior, align, constrained_directions
+
+    rng = np.random.default_rng(1)
+    n, q = 15, 7
+    mu0 = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.1 * rng.standard_normal((n, 3, q)))
+    mean = mu0.mean(dim=0)
+    mean = mean / mean.norm()
+    sr, s = align(mu0, mean)
+    nb = constrained_directions(mean)
+    proj = torch.eye(3 * q, dtype=torch.float64) - nb @ nb.T
+    a = torch.from_numpy(rng.standard_normal((3 * q, 3 * q)))
+    lam = proj @ (a @ a.T) @ proj
+    data = torch.from_numpy(rng.standard_normal((n, 3, q)))
+    data[:, 2] = 0.0
+    obs = torch.eye(q, dtype=torch.float64).expand(n, q, q).contiguous()
+    dense, fast = DensePosterior(lam, sr, s, data, obs, 1e-3), CompletePosterior(lam, sr, s, data, 1e-3)
+    torch.testing.assert_close(fast.mu, dense.mu, rtol=1e-9, atol=1e-9)
+    assert abs(fast.trace - dense.trace) < 1e-9 * dense.trace
+    sr2, _ = align(dense.mu, mean + 0.05 * torch.from_numpy(rng.standard_normal((3, q))))
+    torch.testing.assert_close(fast.moment(sr2), dense.moment(sr2), rtol=1e-9, atol=1e-9)
 
 
 def test_emppca_recovers_a_noise_free_low_rank_sequence_and_handles_missing_points():

@@ -81,6 +81,8 @@ class EMPNDParams:
         c_init: ridge on the starting shape covariance (authors: 1e-4).
         init: ``"csf2"`` or ``"rigid"`` start; init_K: CSF2's K for the start
             (0: CSF2's automatic rule).
+        fast: use :class:`CompletePosterior` when every point is visible
+            (same result, ~3x faster); False forces :class:`DensePosterior`.
     """
 
     max_iter: int = 1000
@@ -90,6 +92,7 @@ class EMPNDParams:
     c_init: float = 1e-4
     init: str = "csf2"
     init_K: int = 0
+    fast: bool = True
 
     def __post_init__(self) -> None:
         if self.init not in ("csf2", "rigid"):
@@ -136,24 +139,111 @@ def _pair_weights(a: torch.Tensor) -> torch.Tensor:
     return (a[:, :, None, :, None] * a[:, None, :, None, :]).reshape(n, 9, 9)
 
 
-def aligned_moment(sr: torch.Tensor, cov_blocks: torch.Tensor, aligned_means: torch.Tensor) -> torch.Tensor:
-    """``A = mean_f K_f (Cov_f + mu_f mu_f^T) K_f^T`` `(3q, 3q)`, ``K_f = sR_f kron I_q``.
+class DensePosterior:
+    """E-step for any visibility: one Cholesky factorisation of the `(3q, 3q)` posterior precision per frame.
 
-    ``cov_blocks`` `(F*9, q*q)` holds the covariances as `[f, m, o | a, b]`
-    blocks; ``aligned_means`` `(F, 3q)` is ``K_f mu_f``.
+    ``mu`` `(F, 3, q)` posterior means (camera frame); ``trace`` = sum_f tr(W_f Cov_f);
+    :meth:`moment` gives ``A = mean_f K'_f E[X_f X_f^T] K'_f^T`` for any alignment ``sR'`` `(F, 3, 3)`.
     """
-    n = sr.shape[0]
-    q = int(round(np.sqrt(cov_blocks.shape[1])))
-    a = _pair_weights(sr).permute(1, 0, 2).reshape(9, n * 9) @ cov_blocks
-    a = a.reshape(3, 3, q, q).permute(0, 2, 1, 3).reshape(3 * q, 3 * q)
-    return (a + aligned_means.T @ aligned_means) / n
+
+    def __init__(self, lam: torch.Tensor, sr: torch.Tensor, s: torch.Tensor, data: torch.Tensor, obs: torch.Tensor,
+                 var: float) -> None:
+        n, _, q = data.shape
+        dim = 3 * q
+        lam_blocks = lam.reshape(3, q, 3, q).permute(0, 2, 1, 3).reshape(9, q * q)
+        prec = (_pair_weights(sr.transpose(1, 2)).reshape(n * 9, 9) @ lam_blocks)
+        prec = prec.reshape(n, 3, 3, q, q).permute(0, 1, 3, 2, 4).contiguous()  # (F, 3, q, 3, q)
+        prec[:, 0, :, 0, :] += obs / var
+        prec[:, 1, :, 1, :] += obs / var
+        chol, info = torch.linalg.cholesky_ex(prec.reshape(n, dim, dim))
+        _check_factorisation(info)
+        cov = torch.cholesky_inverse(chol)
+        self.mu = (cov @ data.reshape(n, dim, 1)).reshape(n, 3, q) / var
+        c5 = cov.reshape(n, 3, q, 3, q)
+        self.trace = float((obs * c5[:, 0, :, 0, :]).sum() + (obs * c5[:, 1, :, 1, :]).sum())
+        self._blocks = c5.permute(0, 1, 3, 2, 4).reshape(n * 9, q * q)  # [f, m, o | a, b]
+        self._q = q
+
+    def moment(self, sr: torch.Tensor) -> torch.Tensor:
+        n, q = sr.shape[0], self._q
+        a = _pair_weights(sr).permute(1, 0, 2).reshape(9, n * 9) @ self._blocks
+        a = a.reshape(3, 3, q, q).permute(0, 2, 1, 3).reshape(3 * q, 3 * q)
+        y = (sr @ self.mu).reshape(n, 3 * q)
+        return (a + y.T @ y) / n
 
 
-def pnd_cost(mean: torch.Tensor, mu: torch.Tensor, cov_blocks: torch.Tensor):
-    """The profiled EM cost ``J(M)`` (module docstring) and what the next E-step needs."""
+class CompletePosterior:
+    """E-step when every point is visible in every frame, about 3x faster than :class:`DensePosterior`.
+
+    In frame f's aligned coordinates the posterior precision is
+    ``Lambda + c_f (I - u_f u_f^T) kron I_q`` (``c_f = 1 / (s_f^2 var)``, ``u_f``
+    the viewing direction), i.e. ``(Lambda + c_f I)`` minus a rank-q term:
+    Woodbury in the eigenbasis of ``Lambda`` leaves one `(q, q)` factorisation
+    per frame, and the covariances are kept as ``V diag(g_f) V^T`` plus a
+    `(3q, q)` factor, so :meth:`moment` is a few large matrix products.
+    Same interface and results as :class:`DensePosterior` (tested to 1e-8).
+    """
+
+    def __init__(self, lam: torch.Tensor, sr: torch.Tensor, s: torch.Tensor, data: torch.Tensor, var: float) -> None:
+        n, _, q = data.shape
+        dim = 3 * q
+        evals, v = torch.linalg.eigh(lam)
+        evals = evals.clamp(min=0.0)
+        rot = sr / s[:, None, None]  # (F, 3, 3) camera -> aligned
+        c = 1.0 / (s**2 * var)  # (F,)
+        v3 = v.reshape(3, q, dim)
+        phi_t = (rot[:, :, 2] @ v3.reshape(3, q * dim)).reshape(n, q, dim)  # (u_f kron I_q)^T V
+        g = 1.0 / (evals[None] + c[:, None])  # (F, dim)
+        h = evals[None] * g / c[:, None]  # 1/c - g without cancellation
+        m = (phi_t * h[:, None, :]) @ phi_t.transpose(1, 2)  # (F, q, q) = I/c - Phi^T G Phi
+        chol, info = torch.linalg.cholesky_ex(m)
+        _check_factorisation(info)
+        psi_t = phi_t * g[:, None, :]  # (F, q, dim) = (G Phi)^T in the eigenbasis
+        beta = ((rot @ data) / (s[:, None, None] * var)).reshape(n, dim) @ v  # V^T K^-T d / var
+        w = torch.cholesky_solve(psi_t @ beta[..., None], chol)
+        y_v = g * beta + (psi_t.transpose(1, 2) @ w)[..., 0]
+        y = y_v @ v.T  # (F, dim) aligned posterior means
+        self.mu = (rot.transpose(1, 2) @ y.reshape(n, 3, q)) / s[:, None, None]
+        # tr(W_f Cov_f) = (tr Inner^-1 - tr U^T Inner^-1 U) / s^2 with U^T Inner^-1 U = S + S M^-1 S, S = Psi^T Phi
+        ptp = psi_t @ psi_t.transpose(1, 2)
+        sm = psi_t @ phi_t.transpose(1, 2)
+        tr_inner = g.sum(dim=1) + torch.diagonal(torch.cholesky_solve(ptp, chol), dim1=1, dim2=2).sum(dim=1)
+        tr_depth = torch.diagonal(sm, dim1=1, dim2=2).sum(dim=1) + \
+            torch.diagonal(sm @ torch.cholesky_solve(sm, chol), dim1=1, dim2=2).sum(dim=1)
+        self.trace = float(((tr_inner - tr_depth) / s**2).sum())
+        # camera-frame factors: Cov_f + mu mu^T = K^-1 (V diag(g_f) V^T + Xi Xi^T) K^-T, Xi = [V Psi L^-T, y_f]
+        z = torch.linalg.solve_triangular(chol, psi_t, upper=False) @ v.T  # (F, q, dim)
+        xi = torch.cat([z, y[:, None, :]], dim=1).reshape(n, q + 1, 3, q).permute(0, 2, 1, 3)
+        self._factor = (rot.transpose(1, 2) @ xi.reshape(n, 3, (q + 1) * q)).reshape(n, 3, q + 1, q) / \
+            s[:, None, None, None]
+        self._g = g
+        self._outer = (v3[:, None, :, None, :] * v3[None, :, None, :, :]).permute(0, 1, 4, 2, 3).reshape(9 * dim, q * q)
+        self._to_aligned = rot.transpose(1, 2) / s[:, None, None]  # K_f^-1 as (F, 3, 3)
+        self._q = q
+
+    def moment(self, sr: torch.Tensor) -> torch.Tensor:
+        n, q = sr.shape[0], self._q
+        dim = 3 * q
+        delta = sr @ self._to_aligned  # K'_f K_f^-1
+        coef = _pair_weights(delta).reshape(n, 81).T @ self._g  # (81 [(j,l),(m,o)], dim)
+        a = coef.reshape(9, 9 * dim) @ self._outer  # (9 [j,l], q*q [a,b])
+        a = a.reshape(3, 3, q, q).permute(0, 2, 1, 3).reshape(dim, dim)
+        f = (sr @ self._factor.reshape(n, 3, (q + 1) * q)).reshape(n, 3, q + 1, q)
+        f = f.permute(1, 3, 0, 2).reshape(dim, n * (q + 1))
+        return (a + f @ f.T) / n
+
+
+def _check_factorisation(info: torch.Tensor) -> None:
+    if int(info.max()) > 0:
+        raise SolverError(f"empnd: the posterior precision of frame {int(torch.argmax((info > 0).int()))} is not "
+                          "positive definite (degenerate shapes?); try init='rigid' or a larger c_init")
+
+
+def pnd_cost(mean: torch.Tensor, mu: torch.Tensor, moment):
+    """The profiled EM cost ``J(M)`` (module docstring) for `(3, q)` ``mean``; ``moment(sR)`` gives ``A``."""
     n, _, q = mu.shape
     sr, s = align(mu, mean)
-    a = aligned_moment(sr, cov_blocks, (sr @ mu).reshape(n, 3 * q))
+    a = moment(sr)
     nb = constrained_directions(mean)
     proj = torch.eye(3 * q, dtype=_DT) - nb @ nb.T
     b = proj @ a @ proj
@@ -198,6 +288,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     hv = visf @ basis  # (F, q)
     obs = np.einsum("pa,fp,pb->fab", basis, visf, basis) - hv[:, :, None] * hv[:, None, :] / count[:, None, None]
     n_obs = 2.0 * (count - 1).sum()
+    complete = bool(vis.all()) and params.fast
 
     start = _start_shapes(seq, params)  # (F, P, 3) camera frame
     x0 = np.einsum("pa,fpj->fja", basis, start - start.mean(axis=1, keepdims=True)) / unit
@@ -233,28 +324,16 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     it = 0
     history = []
     for it in range(1, params.max_iter + 1):
-        # ---- E-step: posterior precision K^T Lambda K + W / var, batched over frames
-        lam_blocks = lam.reshape(3, q, 3, q).permute(0, 2, 1, 3).reshape(9, q * q)
-        prec = (_pair_weights(sr.transpose(1, 2)).reshape(n * 9, 9) @ lam_blocks)
-        prec = prec.reshape(n, 3, 3, q, q).permute(0, 1, 3, 2, 4).contiguous()  # (F, 3, q, 3, q)
-        prec[:, 0, :, 0, :] += obs_t / var
-        prec[:, 1, :, 1, :] += obs_t / var
-        chol, info = torch.linalg.cholesky_ex(prec.reshape(n, dim, dim))
-        if int(info.max()) > 0:
-            raise SolverError(f"empnd: the posterior precision of frame {int(torch.argmax((info > 0).int()))} is "
-                              "not positive definite (degenerate shapes?); try init='rigid' or a larger c_init")
-        cov = torch.cholesky_inverse(chol)  # (F, dim, dim), in units of 1
-        mu = (cov @ d_t.reshape(n, dim, 1)).reshape(n, 3, q) / var
+        # ---- E-step
+        post = CompletePosterior(lam, sr, s, d_t, var) if complete else DensePosterior(lam, sr, s, d_t, obs_t, var)
+        mu = post.mu
         # ---- noise variance
         fit[:, :2] = mu[:, :2] @ obs_t
-        c5 = cov.reshape(n, 3, q, 3, q)
-        trace = (obs_t * c5[:, 0, :, 0, :]).sum() + (obs_t * c5[:, 1, :, 1, :]).sum()
-        new_var = float(((d_t - fit) ** 2).sum() + trace) / n_obs
+        new_var = (float(((d_t - fit) ** 2).sum()) + post.trace) / n_obs
         var = max(min(params.var_drop * new_var, max(var, new_var)), 1e-14)
         # ---- M-step: one line-searched gradient step on the mean shape
-        cov_blocks = c5.permute(0, 1, 3, 2, 4).reshape(n * 9, q * q)
         m_var = mean.clone().requires_grad_(True)
-        j0, aux = pnd_cost(m_var, mu, cov_blocks)
+        j0, aux = pnd_cost(m_var, mu, post.moment)
         (grad,) = torch.autograd.grad(j0, m_var)
         grad = grad - (grad * mean).sum() * mean  # J is scale invariant: stay on the sphere
         g2 = float((grad * grad).sum())
@@ -264,7 +343,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
             trial = mean - step * grad
             trial = trial / trial.norm()
             with torch.no_grad():
-                jt, aux_t = pnd_cost(trial, mu, cov_blocks)
+                jt, aux_t = pnd_cost(trial, mu, post.moment)
             if float(jt) <= j0 - 1e-4 * step * g2:
                 mean, j0, aux = trial, float(jt), aux_t
                 step *= 2.0
