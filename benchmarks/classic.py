@@ -62,6 +62,8 @@ REFERENCE_SETTINGS = {
     "csf2": {"drink": {"K": 10}, "pickup": {"K": 10}, "yoga": {"K": 8}, "stretch": {"K": 8}, "dance": {"K": 2},
              "jaws_rearranged": {"K": 3}},
 }
+#: EM-PND starts from that same CSF2 (its K per sequence).
+REFERENCE_SETTINGS["empnd"] = {name: {"init_K": kw["K"]} for name, kw in REFERENCE_SETTINGS["csf2"].items()}
 #: Which reference row a registered solver is compared with.
 SOLVER_REFERENCE = {"csf2": "CSF2", "empnd": "EM-PND2", "spm": "SPM", "pta": "PTA", "ksta": "KSTA"}
 
