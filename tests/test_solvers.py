@@ -156,6 +156,34 @@ def test_csf2_dct_basis_is_orthonormal():
     assert np.ptp(b[:, 0]) < 1e-12
 
 
+def test_csf2_dct_weighted_gram_equals_the_direct_sum():
+    from nrsfm.solvers.csf2 import dct_basis, dct_weighted_gram
+
+    rng = np.random.default_rng(0)
+    omega, weights = dct_basis(57, 9), rng.standard_normal((57, 3, 3))
+    np.testing.assert_allclose(dct_weighted_gram(weights, 9), np.einsum("fa,fb,fkl->abkl", omega, omega, weights),
+                               atol=1e-13)
+
+
+def test_csf2_camera_refinement_recovers_cameras_from_visible_entries():
+    from scipy.spatial.transform import Rotation
+
+    from nrsfm.solvers.csf2 import _refine_cameras
+
+    rng = np.random.default_rng(1)
+    n_frames, n_points = 20, 12
+    shapes = rng.standard_normal((n_frames, 3, n_points))
+    rot = Rotation.random(n_frames, random_state=2).as_matrix()
+    t = rng.standard_normal((n_frames, 2))
+    w = (rot[:, :2] @ shapes + t[:, :, None]).reshape(2 * n_frames, n_points)
+    vis = rng.random((n_frames, n_points)) > 0.3
+    vis[:, :4] = True  # at least four points per frame
+    start = rot @ Rotation.from_rotvec(0.2 * rng.standard_normal((n_frames, 3))).as_matrix()
+    new_rot, new_t = _refine_cameras(w, np.repeat(vis, 2, axis=0), start, shapes, t + 0.3, steps=8)
+    np.testing.assert_allclose(new_rot, rot, atol=1e-8)
+    np.testing.assert_allclose(new_t, t, atol=1e-8)
+
+
 def test_csf2_refuses_too_large_k():
     with pytest.raises(SolverError, match="3K <= min"):
         solve(lowrank_sequence(10, 8, 1, seed=0), "csf2", K=4)
