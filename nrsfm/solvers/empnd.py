@@ -47,9 +47,11 @@ Where we differ from the authors' code, and why:
 * The alignment uses proper rotations only (``det R = +1``); the authors'
   ``svd``-based update may return a reflection.
 
-Cost: ``O(F (3P)^3)`` per iteration (one Cholesky factorisation and inverse
-per frame), so long sequences with many points are the slow case; all of it
-is batched tensor algebra in float64.
+Cost: with missing points ``O(F (3P)^3)`` per iteration (one Cholesky
+factorisation and inverse per frame, :class:`DensePosterior`); with complete
+tracks ``O(F P^3)`` (:class:`CompletePosterior`). All of it is batched tensor
+algebra in float64. Drink (1102 x 41, 112 iterations, CSF2 start included):
+52 s on one core, 43 s on two (the dense E-step: 61 s on two).
 """
 
 from __future__ import annotations
