@@ -52,8 +52,8 @@ Where we differ from the authors' code, and why:
 Cost: with missing points ``O(F (3P)^3)`` per iteration (one Cholesky
 factorisation and inverse per frame, :class:`DensePosterior`); with complete
 tracks ``O(F P^3)`` (:class:`CompletePosterior`). All of it is batched tensor
-algebra in float64. Drink (1102 x 41, 112 iterations, CSF2 start included):
-52 s on one core, 43 s on two (the dense E-step: 61 s on two).
+algebra in float64. Drink (1102 x 41, 132 iterations, CSF2 start included):
+48 s on two cores, 76 s on one.
 """
 
 from __future__ import annotations
