@@ -247,14 +247,13 @@ def test_empnd_with_missing_points_and_degenerate_frames():
     assert np.isfinite(two.points_3d).all()
 
 
-def test_pnd_cost_gradient_matches_finite_differences():
+def _pnd_problem(rng, n: int, q: int, spread: float):
+    """A random EM-PND state: mean `(3, q)`, alignment, a precision with the PND null space, complete data."""
     import torch
 
-    from nrsfm.solvers.empnd import DensePosterior, align, constrained_directions, pnd_cost
+    from nrsfm.solvers.empnd import align, constrained_directions
 
-    rng = np.random.default_rng(0)
-    n, q = 12, 6
-    mu0 = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.2 * rng.standard_normal((n, 3, q)))
+    mu0 = torch.from_numpy(rng.standard_normal((1, 3, q)) + spread * rng.standard_normal((n, 3, q)))
     mean = mu0.mean(dim=0)
     mean = mean / mean.norm()
     sr, s = align(mu0, mean)
@@ -264,11 +263,21 @@ def test_pnd_cost_gradient_matches_finite_differences():
     data = torch.from_numpy(rng.standard_normal((n, 3, q)))
     data[:, 2] = 0.0
     obs = torch.eye(q, dtype=torch.float64).expand(n, q, q).contiguous()
-    post = DensePosterior(proj @ (a @ a.T) @ proj, sr, s, data, obs, 1e-2)
+    return mean, sr, s, proj @ (a @ a.T) @ proj, data, obs
+
+
+def test_pnd_cost_gradient_matches_finite_differences():
+    import torch
+
+    from nrsfm.solvers.empnd import DensePosterior, pnd_cost
+
+    rng = np.random.default_rng(0)
+    mean, sr, s, lam, data, obs = _pnd_problem(rng, 12, 6, 0.2)
+    post = DensePosterior(lam, sr, s, data, obs, 1e-2)
     m_var = mean.clone().requires_grad_(True)
     cost, _ = pnd_cost(m_var, post.mu, post.moment)
     (grad,) = torch.autograd.grad(cost, m_var)
-    direction = torch.from_numpy(rng.standard_normal((3, q)))
+    direction = torch.from_numpy(rng.standard_normal(mean.shape))
     eps = 1e-6
     with torch.no_grad():
         fd = (pnd_cost(mean + eps * direction, post.mu, post.moment)[0]
@@ -279,25 +288,14 @@ def test_pnd_cost_gradient_matches_finite_differences():
 def test_empnd_complete_posterior_matches_the_dense_one():
     import torch
 
-    from nrsfm.solvers.empnd import CompletePosterior, DensePosterior, align, constrained_directions
+    from nrsfm.solvers.empnd import CompletePosterior, DensePosterior, align
 
     rng = np.random.default_rng(1)
-    n, q = 15, 7
-    mu0 = torch.from_numpy(rng.standard_normal((1, 3, q)) + 0.1 * rng.standard_normal((n, 3, q)))
-    mean = mu0.mean(dim=0)
-    mean = mean / mean.norm()
-    sr, s = align(mu0, mean)
-    nb = constrained_directions(mean)
-    proj = torch.eye(3 * q, dtype=torch.float64) - nb @ nb.T
-    a = torch.from_numpy(rng.standard_normal((3 * q, 3 * q)))
-    lam = proj @ (a @ a.T) @ proj
-    data = torch.from_numpy(rng.standard_normal((n, 3, q)))
-    data[:, 2] = 0.0
-    obs = torch.eye(q, dtype=torch.float64).expand(n, q, q).contiguous()
+    mean, sr, s, lam, data, obs = _pnd_problem(rng, 15, 7, 0.1)
     dense, fast = DensePosterior(lam, sr, s, data, obs, 1e-3), CompletePosterior(lam, sr, s, data, 1e-3)
     torch.testing.assert_close(fast.mu, dense.mu, rtol=1e-9, atol=1e-9)
     assert abs(fast.trace - dense.trace) < 1e-9 * dense.trace
-    sr2, _ = align(dense.mu, mean + 0.05 * torch.from_numpy(rng.standard_normal((3, q))))
+    sr2, _ = align(dense.mu, mean + 0.05 * torch.from_numpy(rng.standard_normal(mean.shape)))
     torch.testing.assert_close(fast.moment(sr2), dense.moment(sr2), rtol=1e-9, atol=1e-9)
 
 
