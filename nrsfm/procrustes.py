@@ -90,7 +90,7 @@ class Alignment:
     converged: bool
 
 
-def _proper_procrustes(target, source):
+def proper_procrustes(target, source):
     """Rotations `(..., 3, 3)` with det +1 maximising ``tr(R source target^T)``."""
     torch = _torch()
     h = target @ source.transpose(-1, -2)  # (..., 3, 3)
@@ -154,7 +154,7 @@ def align(x, *, tol: float | None = None, max_iter: int = 200, init=None, newton
         b, n = y.shape[:2]
         if newton is None:
             newton = n <= 64
-        rot = _proper_procrustes(y[:, :1], y) if init is None else init  # start: every shape onto the first
+        rot = proper_procrustes(y[:, :1], y) if init is None else init  # start: every shape onto the first
         converged = False
         use_newton = False
         it = 0
@@ -173,7 +173,7 @@ def align(x, *, tol: float | None = None, max_iter: int = 200, init=None, newton
                 use_newton = False  # converged, not positive definite or too long: confirm / continue by a sweep
                 continue
             mean = (rot @ y).mean(dim=1, keepdim=True)  # (B, 1, 3, P)
-            new = _proper_procrustes(mean, y)
+            new = proper_procrustes(mean, y)
             change = (new - rot).flatten(-2).norm(dim=-1).max()
             rot = new
             if change < tol:

@@ -273,7 +273,7 @@ def test_pnd_cost_gradient_matches_finite_differences():
 
     rng = np.random.default_rng(0)
     mean, sr, s, lam, data, obs = _pnd_problem(rng, 12, 6, 0.2)
-    post = DensePosterior(lam, sr, s, data, obs, 1e-2)
+    post = DensePosterior(lam, sr, data, obs, 1e-2)
     m_var = mean.clone().requires_grad_(True)
     cost, _ = pnd_cost(m_var, post.mu, post.moment)
     (grad,) = torch.autograd.grad(cost, m_var)
@@ -292,7 +292,7 @@ def test_empnd_complete_posterior_matches_the_dense_one():
 
     rng = np.random.default_rng(1)
     mean, sr, s, lam, data, obs = _pnd_problem(rng, 15, 7, 0.1)
-    dense, fast = DensePosterior(lam, sr, s, data, obs, 1e-3), CompletePosterior(lam, sr, s, data, 1e-3)
+    dense, fast = DensePosterior(lam, sr, data, obs, 1e-3), CompletePosterior(lam, sr, s, data, 1e-3)
     torch.testing.assert_close(fast.mu, dense.mu, rtol=1e-9, atol=1e-9)
     assert abs(fast.trace - dense.trace) < 1e-9 * dense.trace
     sr2, _ = align(dense.mu, mean + 0.05 * torch.from_numpy(rng.standard_normal(mean.shape)))

@@ -54,6 +54,7 @@ pickup), 8 (yoga, stretch), 3 (shark), 2 (dance), all with d = ceil(0.1 F);
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,14 +114,22 @@ def dct_basis(n_frames: int, d: int) -> np.ndarray:
     return basis * np.sqrt(2 / n_frames)
 
 
+@functools.lru_cache(maxsize=8)
+def _dct_cosines(n_frames: int, d: int) -> np.ndarray:
+    """`(2d - 1, F)` ``cos(pi m (2f + 1) / 2F)`` for m < 2d - 1 (read-only; cached: the missing-data rounds call
+    :func:`dct_weighted_gram` thousands of times on one sequence)."""
+    freq = np.arange(2 * d - 1)
+    cos = np.cos(np.pi * (2 * np.arange(n_frames)[None] + 1) * freq[:, None] / (2 * n_frames))
+    cos.flags.writeable = False
+    return cos
+
+
 def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
     """``G[a, b] = sum_f omega_fa omega_fb weights_f`` `(d, d, ...)` for the DCT basis of :func:`dct_basis` and
     `(F, ...)` weights, from ``2d - 1`` cosine sums (``cos x cos y = (cos(x + y) + cos(x - y)) / 2``): ``O(F d)``
     products instead of ``O(F d^2)`` (on drink, K = 10: 24 Mflop against 2.7 Gflop)."""
     n_frames = weights.shape[0]
-    freq = np.arange(2 * d - 1)
-    cos = np.cos(np.pi * (2 * np.arange(n_frames)[None] + 1) * freq[:, None] / (2 * n_frames))  # (2d-1, F)
-    sums = (cos @ weights.reshape(n_frames, -1)).reshape((2 * d - 1,) + weights.shape[1:])
+    sums = (_dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1)).reshape((2 * d - 1,) + weights.shape[1:])
     a = np.arange(d)
     scale = np.full(d, np.sqrt(2 / n_frames))
     scale[0] = np.sqrt(1 / n_frames)
@@ -353,6 +362,9 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
 def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np.ndarray, x: np.ndarray,
                    n_iter: int, ridge: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Alternating least squares on the visible entries of `(2F, P)` wc (S-step, X-step; X re-orthonormalised).
+
+    ``omega`` must be :func:`dct_basis` ``(F, d)``: the X-step's normal matrix uses its cosine structure
+    (:func:`dct_weighted_gram`).
 
     Returns X `(d, K)`, S `(K, 3, P)` and the RMSE over the visible entries.
     """
