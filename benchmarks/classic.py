@@ -62,8 +62,9 @@ REFERENCE_SETTINGS = {
     "csf2": {"drink": {"K": 10}, "pickup": {"K": 10}, "yoga": {"K": 8}, "stretch": {"K": 8}, "dance": {"K": 2},
              "jaws_rearranged": {"K": 3}},
 }
-#: EM-PND starts from that same CSF2 (its K per sequence).
-REFERENCE_SETTINGS["empnd"] = {name: {"init_K": kw["K"]} for name, kw in REFERENCE_SETTINGS["csf2"].items()}
+#: With missing points EM-PND starts from CSF2 (occlusion-aware), with that same K per sequence; with complete
+#: tracks it uses the authors' own start and needs no setting.
+MISSING_SETTINGS = {"empnd": {name: {"init_K": kw["K"]} for name, kw in REFERENCE_SETTINGS["csf2"].items()}}
 #: Which reference row a registered solver is compared with.
 SOLVER_REFERENCE = {"csf2": "CSF2", "empnd": "EM-PND2", "spm": "SPM", "pta": "PTA", "ksta": "KSTA"}
 
@@ -98,7 +99,11 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
     for m in methods:
         row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
                "missing": missing}
-        overrides = REFERENCE_SETTINGS.get(m, {}).get(seq.name, {}) if settings == "reference" else {}
+        overrides = {}
+        if settings == "reference":
+            overrides = dict(REFERENCE_SETTINGS.get(m, {}).get(seq.name, {}))
+            if missing > 0:
+                overrides.update(MISSING_SETTINGS.get(m, {}).get(seq.name, {}))
         row["settings"] = ",".join(f"{k}={v}" for k, v in overrides.items()) or "default"
         t0 = time.perf_counter()
         try:
