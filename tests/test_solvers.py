@@ -309,6 +309,17 @@ def test_unit_trace_psd_projection():
     assert g.shape == (4, 3) and abs(np.trace(gg) - 1) < 1e-12
 
 
+def test_empnd_probe_keeps_the_start_with_the_lower_cost():
+    seq = lowrank_sequence(60, 12, 2, seed=6)
+    rec = solve(seq, "empnd", probe_iter=5, max_iter=30)
+    costs = rec.info["probe_costs"]
+    assert len(costs) == 2 and rec.info["init"] == ("factorisation", "csf2")[int(np.argmin(costs))]
+    assert np.isfinite(rec.points_3d).all() and rec.iterations <= 30
+    assert solve(seq, "empnd", max_iter=3).info["init"] == "factorisation"
+    with pytest.raises(ValidationError, match="needs every point visible"):
+        solve(lowrank_sequence(20, 10, 2, seed=0, missing=0.2), "empnd", init="factorisation")
+
+
 def _pnd_problem(rng, n: int, q: int, spread: float):
     """A random EM-PND state: mean `(3, q)`, alignment, a precision with the PND null space, complete data."""
     import torch
