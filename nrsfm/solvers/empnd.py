@@ -399,8 +399,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
         return st
 
     kind = _init_kind(seq, params)
-    if params.init == "auto" and kind == "factorisation" and params.probe_iter > 0 \
-            and min(2 * seq.n_frames, seq.n_points) >= 6:
+    if params.init == "auto" and kind == "factorisation" and params.probe_iter > 0 and _csf2_fits(seq):
         # both starts for probe_iter iterations; the lower PND cost goes on
         probes = [iterate(begin(_start_shapes(seq, params, k)), params.probe_iter) for k in ("factorisation", "csf2")]
         best = min(range(2), key=lambda i: probes[i]["cost"])
@@ -425,9 +424,14 @@ def _init_kind(seq: Sequence, params: EMPNDParams) -> str:
     kind = params.init
     if kind == "auto":
         kind = "factorisation" if bool((seq.weights > 0).all()) else "csf2"
-    if kind == "csf2" and min(2 * seq.n_frames, seq.n_points) < 6:
-        return "rigid"  # CSF2 needs 3K <= min(2F, P) with K >= 2 (documented fallback)
+    if kind == "csf2" and not _csf2_fits(seq):
+        return "rigid"  # documented fallback
     return kind
+
+
+def _csf2_fits(seq: Sequence) -> bool:
+    """CSF2 needs 3K <= min(2F, P) with K >= 2."""
+    return min(2 * seq.n_frames, seq.n_points) >= 6
 
 
 def _start_shapes(seq: Sequence, params: EMPNDParams, kind: str) -> np.ndarray:

@@ -86,21 +86,21 @@ def rectify_fista(con: OrthonormalityConstraints, gg: np.ndarray, tol: float = 1
     Stops when the majorisation gap ``|GG - T|^2 + c(GG) - |A(T - GG)|^2`` exceeds the cost ``c`` by a relative
     ``tol`` or less (the authors' rule), ``T`` the extrapolated point.
     """
-    cost, _ = con.cost(gg)
-    t, t_gg = 1.0, gg.copy()
+    cost, h_gg = con.cost(gg)
+    t, t_gg, h_t = 1.0, gg.copy(), h_gg.copy()  # H applied to the iterate and to the extrapolated point, tracked
     g = None
     bound = np.inf
     for _ in range(max_iter):
         if not (bound / max(cost, 1e-300) - 1 > tol and bound > _EPS):
             break
-        p_gg, p_t = gg, t
-        _, t_grad = con.cost(t_gg)
-        gg, g = project_unit_trace_psd(t_gg - t_grad)
-        cost, _ = con.cost(gg)
+        p_gg, p_h, p_t = gg, h_gg, t
+        gg, g = project_unit_trace_psd(t_gg - h_t)
+        cost, h_gg = con.cost(gg)  # the only product with H per iteration
         step = gg - t_gg
-        bound = (step**2).sum() + cost - con.cost(step)[0]
+        bound = (step**2).sum() + cost - float((step * (h_gg - h_t)).sum())
         t = (1 + np.sqrt(1 + 4 * p_t * p_t)) / 2
         t_gg = gg + (p_t - 1) / t * (gg - p_gg)
+        h_t = h_gg + (p_t - 1) / t * (h_gg - p_h)
     if g is None:
         gg, g = project_unit_trace_psd(gg)
     return gg, g
@@ -136,15 +136,14 @@ def factor_rotations(fd: np.ndarray, energy: float = 1 - 1e-5, floor: float = 1e
     scales `(F,)` (smallest 1) and the ``K`` used.
     """
     u, sv, _ = np.linalg.svd(fd, full_matrices=False)
+    if sv.size < 3:
+        raise SolverError(f"factorisation start: expected at least 3 points and 2 frames, got a {fd.shape} matrix")
     cum = np.cumsum(sv[:-1] ** 2)
-    if cum.size == 0 or cum[-1] <= 0:
+    if cum[-1] <= 0:
         raise SolverError("factorisation start: the tracks have rank < 2; there is no motion to factorise")
     k_max = int((cum / cum[-1] < energy).sum()) + 1
     k_max = max(3, min(int(np.ceil(k_max / 3)) * 3, sv.size))
-    if sv.size < 3:
-        raise SolverError(f"factorisation start: expected at least 3 points and 2 frames, got a {fd.shape} matrix")
     g = None
-    k = 3
     for k in [*range(3, k_max, 3), k_max]:
         con = OrthonormalityConstraints(u[:, :k])
         if g is None:
