@@ -191,14 +191,35 @@ def test_csf2_refuses_too_large_k():
 
 # ------------------------------------------------------------------ SPM
 def test_spm_shape_steps_agree_on_a_small_problem():
-    from nrsfm.solvers.spm import shape_cvxpy, shape_fpc
+    from nrsfm.solvers.spm import shape_admm, shape_cvxpy, shape_fpc
 
     seq = lowrank_sequence(20, 10, 2, seed=5)
     w = (seq.points_2d - seq.points_2d.mean(1, keepdims=True)).transpose(0, 2, 1)
     rot = seq.camera_rotations
     a = shape_cvxpy(w, rot)
     b = shape_fpc(w, rot, inner=2000, tol=1e-12)
+    c, iterations = shape_admm(w, rot, tol=1e-8)
     assert np.abs(a - b).max() < 1e-4 * np.abs(a).max()
+    assert np.abs(a - c).max() < 1e-4 * np.abs(a).max()
+    assert iterations < 5000
+
+
+def test_spm_admm_reaches_a_lower_nuclear_norm_than_the_truth():
+    """Noisy shapes of a rank-2 model: the minimiser's nuclear norm is at most the ground truth's."""
+    from nrsfm.solvers.spm import shape_admm
+
+    seq = lowrank_sequence(60, 15, 2, seed=3, cameras="random")
+    gt = seq.points_3d - seq.points_3d.mean(1, keepdims=True)
+    gt = gt + 0.05 * np.random.default_rng(0).standard_normal(gt.shape) * gt.std()
+    w = gt[..., :2].transpose(0, 2, 1)
+    rot = seq.camera_rotations  # (F, 3, 3)
+
+    def nuclear(depth):
+        cam = np.concatenate([w, depth[:, None, :]], axis=1)
+        return np.linalg.norm(np.einsum("fji,fjp->fip", rot, cam).reshape(len(w), -1), "nuc")
+
+    depth, _ = shape_admm(w, rot, tol=1e-6)
+    assert nuclear(depth) <= nuclear(gt[..., 2]) + 1e-6
 
 
 def test_spm_recovers_low_rank_with_camera_jumps():

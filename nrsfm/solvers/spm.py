@@ -22,11 +22,14 @@ Rotation (cameras):
 
 Shape: with ``S_f = R_f^T [W_f; z_f]`` (exact reprojection), minimise the
 nuclear norm of ``S#`` `(F, 3P)` (rows ``[X_f Y_f Z_f]``) over the depths
-``z`` — with cvxpy for small problems, or by fixed-point continuation (FPC:
-gradient step ``tau = 0.2`` on the reprojection, singular-value soft
-threshold, ``mu_l = max(1e-10, 4 * 0.25^l)``) for long sequences; the two
-agree on small problems (a test checks 1e-4). An optional final rank-K
-truncation follows the authors' code.
+``z`` — with cvxpy for small problems, or by ADMM (:func:`shape_admm`) for
+long sequences; the two agree on small problems (a test checks 1e-4). The
+authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
+reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
+0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
+short of the minimum on the shark (e3D .875 against ADMM's .233 and the
+authors' published .2357). An optional final rank-K truncation follows the
+authors' code.
 
 K: the authors' per-sequence settings (drink 12, pickup 12, yoga 10, stretch
 11, dance 10, face 7, walking 8, shark 4) when the sequence name matches,
@@ -53,16 +56,19 @@ class SPMParams:
     """Parameters of :func:`solve_spm` (``K = 0``: automatic).
 
     Attributes:
-        shape_solver: ``"cvxpy"``, ``"fpc"`` or ``"auto"`` (cvxpy when F * 3P <= cvxpy_limit).
+        shape_solver: ``"cvxpy"``, ``"admm"``, ``"fpc"`` or ``"auto"`` (cvxpy when F * 3P <= cvxpy_limit, else ADMM).
         trace_weight: weight of trace(Q) in the rotation program (relative).
         truncate: final rank-K truncation of the shape matrix.
-        fpc_outer / fpc_inner / fpc_tol: continuation stages, inner steps, inner tolerance.
+        admm_tol / admm_max_iter: relative residual tolerance and iteration cap of :func:`shape_admm`.
+        fpc_outer / fpc_inner / fpc_tol: continuation stages, inner steps, inner tolerance (the authors' FPC).
     """
 
     K: int = 0
     shape_solver: str = "auto"
     trace_weight: float = 1e-4
     truncate: bool = False
+    admm_tol: float = 1e-4
+    admm_max_iter: int = 5000
     fpc_tau: float = 0.2
     fpc_outer: int = 20
     fpc_inner: int = 100
@@ -70,8 +76,11 @@ class SPMParams:
     cvxpy_limit: int = 4000
 
     def __post_init__(self) -> None:
-        if self.shape_solver not in ("auto", "cvxpy", "fpc"):
-            raise ValidationError(f"shape_solver: expected 'auto', 'cvxpy' or 'fpc', got {self.shape_solver!r}")
+        if self.shape_solver not in ("auto", "cvxpy", "admm", "fpc"):
+            raise ValidationError(f"shape_solver: expected 'auto', 'cvxpy', 'admm' or 'fpc', got {self.shape_solver!r}")
+        if not (0 < self.admm_tol < 1 and self.admm_max_iter >= 1):
+            raise ValidationError(f"SPMParams: expected 0 < admm_tol < 1 and admm_max_iter >= 1, got {self.admm_tol}, "
+                                  f"{self.admm_max_iter}")
         if self.K < 0 or not 0 < self.fpc_tau <= 1.9:
             raise ValidationError(f"SPMParams: expected K >= 0 and 0 < fpc_tau <= 1.9, got {self.K}, {self.fpc_tau}")
 
@@ -190,6 +199,51 @@ def shape_fpc(w: np.ndarray, rot: np.ndarray, *, tau: float = 0.2, outer: int = 
     return np.einsum("fi,fip->fp", rot[:, 2], s)  # depth along each camera's third row
 
 
+def shape_admm(w: np.ndarray, rot: np.ndarray, *, tol: float = 1e-5, max_iter: int = 5000, relax: float = 1.6,
+               rho: float | None = None) -> tuple[np.ndarray, int]:
+    """Depths `(F, P)` minimising ``||S#||_*`` by ADMM; for `(F, 2, P)` centred ``w`` and `(F, 3, 3)` ``rot``.
+
+    With exact reprojection, ``S#(z) = B + L(z)``: ``B`` `(F, 3P)` holds the
+    back-projected tracks ``R_f^(2)T W_f`` and ``L(z)_f = r3_f kron z_f`` puts
+    each depth along its camera's third row ``r3_f``. ``L^T L = I``, so the
+    splitting ``min ||Y||_* s.t. Y = B + L(z)`` has closed-form steps: ``Y`` by
+    singular-value thresholding, ``z = L^T(Y - B - U)`` (Boyd et al. 2011,
+    over-relaxed, penalty balanced every 10 iterations). Stops when the primal
+    and dual residuals fall below ``tol`` relative to their scales.
+
+    Why not FPC: its fixed step (``tau = 0.2``) and continuation left the
+    shark 6% above the minimum nuclear norm after 20 x 100 steps (e3D .875,
+    .775 after 20 x 1000 steps in 74 s); ADMM reaches it in about 1000
+    iterations (11 s, e3D .233).
+
+    Returns:
+        the depths `(F, P)` and the number of iterations.
+    """
+    n_frames, _, n_points = w.shape
+    base = np.einsum("fji,fjp->fip", rot[:, :2], w)  # (F, 3, P)
+    r3 = rot[:, 2][:, :, None]  # (F, 3, 1)
+    scale = np.linalg.norm(base)
+    rho = np.sqrt(min(n_frames, 3 * n_points)) / max(scale, 1e-300) if rho is None else rho
+    y = base.copy()
+    u = np.zeros_like(base)
+    for it in range(1, max_iter + 1):
+        z = np.einsum("fip,fip->fp", r3, y - base - u)  # L^T (Y - B - U)
+        lz = r3 * z[:, None, :]
+        x_hat = relax * (base + lz) + (1 - relax) * y
+        uu, sig, vt = np.linalg.svd((x_hat + u).reshape(n_frames, -1), full_matrices=False)
+        y_old = y
+        y = ((uu * np.maximum(sig - 1.0 / rho, 0.0)) @ vt).reshape(base.shape)
+        u = u + x_hat - y
+        primal = np.linalg.norm(base + lz - y) / max(np.linalg.norm(y), scale)
+        dual = np.linalg.norm(np.einsum("fip,fip->fp", r3, y - y_old)) / max(np.linalg.norm(u), 1e-300)
+        if primal < tol and dual < tol:
+            break
+        if it % 10 == 0 and (primal > 10 * dual or dual > 10 * primal):
+            factor = 2.0 if primal > dual else 0.5
+            rho, u = rho * factor, u / factor
+    return np.einsum("fip,fip->fp", r3, y - base), it
+
+
 @register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)")
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on a complete orthographic sequence. See the module docstring."""
@@ -214,9 +268,12 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     wf = w.transpose(0, 2, 1)  # (F, 2, P)
     solver = params.shape_solver
     if solver == "auto":
-        solver = "cvxpy" if n_frames * 3 * n_points <= params.cvxpy_limit else "fpc"
+        solver = "cvxpy" if n_frames * 3 * n_points <= params.cvxpy_limit else "admm"
+    shape_iterations = 1
     if solver == "cvxpy":
         depth = shape_cvxpy(wf, rot)
+    elif solver == "admm":
+        depth, shape_iterations = shape_admm(wf, rot, tol=params.admm_tol, max_iter=params.admm_max_iter)
     else:
         depth = shape_fpc(wf, rot, tau=params.fpc_tau, outer=params.fpc_outer, inner=params.fpc_inner,
                           tol=params.fpc_tol)
@@ -228,5 +285,7 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
         cam = np.einsum("fij,fjp->fip", rot, obj)
     points = cam.transpose(0, 2, 1)
     points = points - points.mean(axis=1, keepdims=True)
-    return Reconstruction(points_3d=points, rotations=rot, method="spm", iterations=1, converged=True,
-                          info={"K": k, "shape_solver": solver, "camera_residual": cam_residual})
+    return Reconstruction(points_3d=points, rotations=rot, method="spm", iterations=shape_iterations,
+                          converged=solver != "admm" or shape_iterations < params.admm_max_iter,
+                          info={"K": k, "shape_solver": solver, "shape_iterations": shape_iterations,
+                                "camera_residual": cam_residual})
