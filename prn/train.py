@@ -180,7 +180,9 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         opt.load_state_dict(state["optimizer"])
         start, history = state["iteration"], state["history"]
         rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())  # map_location moved it to the training device
+        if device.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)
         log.info("resumed from %s at iteration %d", ckpt_path, start)
 
     x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
@@ -226,7 +228,8 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         if ckpt_path is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == end):
             _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                           "history": history, "config": dataclasses.asdict(config),
-                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt_path)
+                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                          "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}, ckpt_path)
     bar.close()
     seconds = time.perf_counter() - t_begin
     run = max(end - start, 0)

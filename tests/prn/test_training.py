@@ -82,8 +82,10 @@ def test_cnn_with_the_torchvision_resnet50_trains_with_the_pr_loss():
     assert sum(float(g.abs().sum()) for g in grads) > 0
 
 
-def test_training_reduces_the_loss_and_checkpoints_resume(small_set, tmp_path):
-    cfg = TrainConfig(iterations=40, width=64, lr=1e-3, lr_step=20, checkpoint_every=20, group_size=8, groups=2)
+@pytest.mark.parametrize("missing", [0.0, 0.2])  # 0.2: random point drops draw from torch's (device) RNG
+def test_training_reduces_the_loss_and_checkpoints_resume(small_set, tmp_path, missing):
+    cfg = TrainConfig(iterations=40, width=64, lr=1e-3, lr_step=20, checkpoint_every=20, group_size=8, groups=2,
+                      missing_points=missing)
     full = train(small_set, cfg, tmp_path / "a", progress=False, log_every=1)
     assert full.history[-1]["loss"] < full.history[0]["loss"]
     # an interrupted run (stopped after 20 iterations) resumed to 40 gives the same weights
