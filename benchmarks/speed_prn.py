@@ -30,7 +30,7 @@ from benchmarks.common import markdown_table, run_metadata, write_json
 
 
 def measure(device: str = "cpu", repeats: int = 50, groups: int = 4, group_size: int = 32, width: int = 1024,
-            seed: int = 0, warmup_iterations: int = 200) -> dict:
+            seed: int = 0, warmup_iterations: int = 200, align_device: str | None = None) -> dict:
     """Time training iterations and, inside each, the PR loss's forward + backward.
 
     Each iteration is split into network forward, loss forward + backward (on
@@ -65,7 +65,8 @@ def measure(device: str = "cpu", repeats: int = 50, groups: int = 4, group_size:
         leaf = pred.detach().requires_grad_(True)
         sync()
         t1 = time.perf_counter()
-        loss = pr_loss(leaf, y_all[idx], w_all[idx], lam=0.05, group_size=group_size, parts=parts)
+        loss = pr_loss(leaf, y_all[idx], w_all[idx], lam=0.05, group_size=group_size, parts=parts,
+                       align_device=align_device)
         loss.backward()
         sync()
         t2 = time.perf_counter()
@@ -82,7 +83,7 @@ def measure(device: str = "cpu", repeats: int = 50, groups: int = 4, group_size:
     it = statistics.median(s[0] for s in samples)
     lo = statistics.median(s[1] for s in samples)
     share = sum(s[1] for s in samples) / sum(s[0] for s in samples)
-    return {"device": str(dev), "threads": torch.get_num_threads(), "batch": f"{groups} x {group_size} x 17",
+    return {"device": str(dev), "align_device": align_device or str(dev), "threads": torch.get_num_threads(), "batch": f"{groups} x {group_size} x 17",
             "width": width, "iteration_ms": 1e3 * it, "loss_fwd_bwd_ms": 1e3 * lo, "loss_share": share,
             "iterations_per_second": 1 / it, "align_steps_median": statistics.median(s[2] for s in samples),
             "repeats": repeats, "warmup_iterations": warmup_iterations}
@@ -93,12 +94,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=100)
     p.add_argument("--warmup", type=int, default=200, help="untimed training iterations first")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--align-device", default=None, help="where the PR loss's alignment runs (default: --device)")
     p.add_argument("--out", default="runs/speed_prn")
     args = p.parse_args(argv)
-    r = measure(args.device, args.repeats, warmup_iterations=args.warmup)
-    print(markdown_table(["device", "threads", "batch", "iteration (ms)", "PR loss fwd+bwd (ms)", "loss share",
+    r = measure(args.device, args.repeats, warmup_iterations=args.warmup, align_device=args.align_device)
+    print(markdown_table(["device", "loss alignment on", "threads", "batch", "iteration (ms)", "PR loss fwd+bwd (ms)", "loss share",
                           "iterations/s", "alignment steps"],
-                         [[r["device"], r["threads"], r["batch"], r["iteration_ms"], r["loss_fwd_bwd_ms"],
+                         [[r["device"], r["align_device"], r["threads"], r["batch"], r["iteration_ms"], r["loss_fwd_bwd_ms"],
                            f"{100 * r['loss_share']:.1f}%", r["iterations_per_second"], r["align_steps_median"]]]))
     write_json(Path(args.out) / "speed_prn.json", {"meta": run_metadata(), "result": r})
     return 0

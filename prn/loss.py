@@ -38,7 +38,7 @@ class PRLossParts:
 
 class _PRLossFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, u, w, lam, parts):  # x (B, n, 3, P), u (B, n, 2, P), w (B, n, P)
+    def forward(ctx, x, u, w, lam, parts, align_device):  # x (B, n, 3, P), u (B, n, 2, P), w (B, n, P)
         w2 = (w * w).unsqueeze(2)  # (B, n, 1, P)
         resid = x[:, :, :2].detach() - u  # (B, n, 2, P)
         data = 0.5 * (resid * resid * w2).sum()
@@ -50,8 +50,9 @@ class _PRLossFunction(torch.autograd.Function):
                 parts.data, parts.nuclear = float(data), float("nan")
                 parts.align_iterations, parts.align_converged = 0, True
             return data
-        al = align(x.detach())
+        al = align(x.detach().to(align_device))
         nuc, sub = nuclear_norm_and_subgradient(al.aligned)
+        nuc = nuc.to(x.device)
         ctx.save_for_backward(resid, w2, sub)
         ctx.al = al
         if parts is not None:
@@ -65,12 +66,13 @@ class _PRLossFunction(torch.autograd.Function):
         grad = resid.new_zeros(ctx.shape)
         grad[:, :, :2] = resid * w2  # eq. 13
         if ctx.lam != 0:
-            grad = grad + ctx.lam * align_vjp(ctx.saved_tensors[2], ctx.al)  # eq. 5-11 and 15
-        return grad_out * grad, None, None, None, None
+            grad = grad + ctx.lam * align_vjp(ctx.saved_tensors[2], ctx.al).to(grad.device)  # eq. 5-11 and 15
+        return grad_out * grad, None, None, None, None, None
 
 
 def pr_loss(pred: torch.Tensor, points_2d: torch.Tensor, weights: torch.Tensor | None = None, *,
-            lam: float = 0.05, group_size: int | None = None, parts: PRLossParts | None = None) -> torch.Tensor:
+            lam: float = 0.05, group_size: int | None = None, parts: PRLossParts | None = None,
+            align_device: str | torch.device | None = None) -> torch.Tensor:
     """The PR loss summed over groups.
 
     Args:
@@ -80,6 +82,9 @@ def pr_loss(pred: torch.Tensor, points_2d: torch.Tensor, weights: torch.Tensor |
         lam: regularisation weight lambda (0 = PRN without regularisation).
         group_size: frames per group (default: one group of N frames).
         parts: optional :class:`PRLossParts` filled with the last evaluation's terms.
+        align_device: where the alignment, the nuclear norm and their backward pass run (None: on
+            ``pred``'s device). ``"cpu"`` moves them off a GPU, where these small decompositions are
+            latency-bound (see ``benchmarks/RESULTS.md``, PRN loss speed).
 
     Returns:
         A scalar tensor whose backward pass is the analytic PR gradient.
@@ -100,7 +105,8 @@ def pr_loss(pred: torch.Tensor, points_2d: torch.Tensor, weights: torch.Tensor |
     x = pred.reshape(b, g, n_points, 3).transpose(-1, -2)  # (B, n, 3, P)
     u = points_2d.to(pred.dtype).reshape(b, g, n_points, 2).transpose(-1, -2)  # (B, n, 2, P)
     w = weights.to(pred.dtype).reshape(b, g, n_points)
-    return _PRLossFunction.apply(x, u, w, float(lam), parts)
+    dev = pred.device if align_device is None else torch.device(align_device)
+    return _PRLossFunction.apply(x, u, w, float(lam), parts, dev)
 
 
 def regularizer(pred: torch.Tensor, group_size: int | None = None) -> torch.Tensor:

@@ -97,3 +97,21 @@ def test_bad_shapes():
         pr_loss(x, u, group_size=4)
     with pytest.raises(ValidationError, match=r"points_2d: expected \(N, P, 2\)"):
         pr_loss(x, u[:5])
+
+
+def test_pr_loss_align_device_gives_the_same_value_and_gradient():
+    """``align_device`` only moves the computation: the value and the gradient are unchanged (the prediction
+    lives on the GPU when there is one, so there the test crosses devices)."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    gen = torch.Generator().manual_seed(0)
+    pred = torch.randn(8, 6, 3, generator=gen, dtype=torch.float64).to(device)
+    obs = pred[..., :2].detach() + 0.1 * torch.randn(8, 6, 2, generator=gen, dtype=torch.float64).to(device)
+    a = pred.clone().requires_grad_(True)
+    b = pred.clone().requires_grad_(True)
+    la = pr_loss(a, obs, lam=0.3, group_size=4)
+    lb = pr_loss(b, obs, lam=0.3, group_size=4, align_device="cpu")
+    la.backward()
+    lb.backward()
+    torch.testing.assert_close(la, lb)
+    torch.testing.assert_close(a.grad, b.grad)
+    assert a.grad.abs().sum() > 0
