@@ -204,6 +204,17 @@ def test_spm_shape_steps_agree_on_a_small_problem():
     assert iterations < 5000
 
 
+@pytest.mark.parametrize("shape", [(40, 9), (9, 40)])
+def test_singular_value_threshold_matches_the_svd(shape):
+    from nrsfm.solvers.spm import singular_value_threshold
+
+    rng = np.random.default_rng(1)
+    m = rng.standard_normal((shape[0], 3)) @ rng.standard_normal((3, shape[1])) * 5 + rng.standard_normal(shape)
+    u, s, vt = np.linalg.svd(m, full_matrices=False)
+    t = float(np.median(s))  # keeps some singular values and zeroes others
+    np.testing.assert_allclose(singular_value_threshold(m, t), (u * np.maximum(s - t, 0)) @ vt, atol=1e-10)
+
+
 def test_spm_admm_reaches_a_lower_nuclear_norm_than_the_truth():
     """Noisy shapes of a rank-2 model: the minimiser's nuclear norm is at most the ground truth's."""
     from nrsfm.solvers.spm import shape_admm
