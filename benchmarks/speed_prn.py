@@ -83,7 +83,8 @@ def measure(device: str = "cpu", repeats: int = 50, groups: int = 4, group_size:
     it = statistics.median(s[0] for s in samples)
     lo = statistics.median(s[1] for s in samples)
     share = sum(s[1] for s in samples) / sum(s[0] for s in samples)
-    return {"device": str(dev), "align_device": align_device or str(dev), "threads": torch.get_num_threads(), "batch": f"{groups} x {group_size} x 17",
+    return {"device": str(dev), "align_device": align_device or str(dev), "threads": torch.get_num_threads(),
+            "batch": f"{groups} x {group_size} x 17",
             "width": width, "iteration_ms": 1e3 * it, "loss_fwd_bwd_ms": 1e3 * lo, "loss_share": share,
             "iterations_per_second": 1 / it, "align_steps_median": statistics.median(s[2] for s in samples),
             "repeats": repeats, "warmup_iterations": warmup_iterations}
@@ -98,10 +99,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="runs/speed_prn")
     args = p.parse_args(argv)
     r = measure(args.device, args.repeats, warmup_iterations=args.warmup, align_device=args.align_device)
-    print(markdown_table(["device", "loss alignment on", "threads", "batch", "iteration (ms)", "PR loss fwd+bwd (ms)", "loss share",
-                          "iterations/s", "alignment steps"],
-                         [[r["device"], r["align_device"], r["threads"], r["batch"], r["iteration_ms"], r["loss_fwd_bwd_ms"],
-                           f"{100 * r['loss_share']:.1f}%", r["iterations_per_second"], r["align_steps_median"]]]))
+    print(markdown_table(["device", "loss alignment on", "threads", "batch", "iteration (ms)", "PR loss fwd+bwd (ms)",
+                          "loss share", "iterations/s", "alignment steps"],
+                         [[r["device"], r["align_device"], r["threads"], r["batch"], r["iteration_ms"],
+                           r["loss_fwd_bwd_ms"], f"{100 * r['loss_share']:.1f}%", r["iterations_per_second"],
+                           r["align_steps_median"]]]))
     write_json(Path(args.out) / "speed_prn.json", {"meta": run_metadata(), "result": r})
     return 0
 
