@@ -107,6 +107,37 @@ def e3d(pred: np.ndarray, gt: np.ndarray, *, frame: Frame = "camera", pred_rotat
                                allow_reflection=allow_reflection).mean())
 
 
+# --------------------------------------------------------------------------- cameras
+def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarray) -> np.ndarray:
+    """Per-frame camera error of Akhter et al. (NIPS 2008), the ``Rotation_Err`` of Dai et al.'s SPM code.
+
+    The two camera rows of every frame are stacked into `(2F, 3)` matrices; one global orthogonal matrix
+    (least squares, a reflection allowed: the depth sign of orthographic NRSfM is ambiguous) takes the
+    prediction's rows to the ground truth's; each frame's error is the Frobenius norm of its `(2, 3)` difference
+    (0 for exact cameras; 2 sqrt(2) for a frame turned by 180 degrees about the optical axis).
+
+    Args:
+        pred_rotations, gt_rotations: `(F, 3, 3)` camera rotations, ``X_cam = R X_obj`` (rows: the camera axes).
+
+    Returns:
+        `(F,)` per-frame errors.
+    """
+    pred = np.asarray(pred_rotations, dtype=np.float64)
+    gt = np.asarray(gt_rotations, dtype=np.float64)
+    if pred.ndim != 3 or pred.shape[1:] != (3, 3):
+        raise shape_error("pred_rotations", "(F, 3, 3)", pred.shape)
+    if gt.shape != pred.shape:
+        raise shape_error("gt_rotations", f"(F, 3, 3) with F = {pred.shape[0]} like pred_rotations", gt.shape)
+    a, b = pred[:, :2].reshape(-1, 3), gt[:, :2].reshape(-1, 3)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    return np.linalg.norm((a @ (u @ vt) - b).reshape(-1, 2, 3), axis=(1, 2))
+
+
+def rotation_error(pred_rotations: np.ndarray, gt_rotations: np.ndarray) -> float:
+    """Mean of :func:`rotation_error_per_frame`."""
+    return float(rotation_error_per_frame(pred_rotations, gt_rotations).mean())
+
+
 # ------------------------------------------------------------------ normalised error
 def normalized_error_per_frame(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["per_frame", "none"] = "per_frame"
                                ) -> np.ndarray:
@@ -227,8 +258,9 @@ def stress(pred: np.ndarray, gt: np.ndarray) -> float:
 
 def classic_metrics(pred: np.ndarray, gt: np.ndarray, *, pred_rotations: np.ndarray | None = None,
                     gt_rotations: np.ndarray | None = None) -> dict[str, float]:
-    """The numbers ``nrsfm solve`` prints: e3D (camera frame, and object frame when both rotations
-    are known), normalised error and MPJPE (PRN protocol, in the data's units)."""
+    """The numbers ``nrsfm solve`` prints: e3D (camera frame, and object frame and the camera error of
+    :func:`rotation_error` when both rotations are known), normalised error and MPJPE (PRN protocol, in the
+    data's units)."""
     out = {
         "e3d": e3d(pred, gt),
         "normalized_error": normalized_error(pred, gt),
@@ -236,4 +268,5 @@ def classic_metrics(pred: np.ndarray, gt: np.ndarray, *, pred_rotations: np.ndar
     }
     if pred_rotations is not None and gt_rotations is not None:
         out["e3d_object"] = e3d(pred, gt, frame="object", pred_rotations=pred_rotations, gt_rotations=gt_rotations)
+        out["rotation_error"] = rotation_error(pred_rotations, gt_rotations)
     return out

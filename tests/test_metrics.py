@@ -6,7 +6,8 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from nrsfm import ValidationError
-from nrsfm.metrics import (e3d, e3d_per_frame, mpjpe_best_flip, mpjpe_prn, normalized_error, pa_mpjpe, stress)
+from nrsfm.metrics import (e3d, e3d_per_frame, mpjpe_best_flip, mpjpe_prn, normalized_error, pa_mpjpe,
+                           rotation_error, rotation_error_per_frame, stress)
 
 MIRROR = np.array([1.0, 1.0, -1.0])
 
@@ -63,6 +64,24 @@ def test_best_flip_and_stress_known_values():
     gt3 = np.array([[[0, 0, 0], [1, 0, 2]]], dtype=float)
     assert mpjpe_best_flip(gt3 * MIRROR, gt3) == pytest.approx(0.0)
     assert stress(gt3 * MIRROR, gt3) == pytest.approx(0.0)
+
+
+def test_rotation_error_known_values():
+    gt = Rotation.random(5, random_state=3).as_matrix()
+    frame = Rotation.random(random_state=4).as_matrix()
+    mirror = np.diag([1.0, 1.0, -1.0])
+    # a global change of object frame, proper or mirrored, costs nothing
+    assert rotation_error(gt @ frame, gt) == pytest.approx(0, abs=1e-12)
+    assert rotation_error(gt @ mirror, gt) == pytest.approx(0, abs=1e-12)
+    # one frame turned by 180 degrees about the optical axis: both rows negated, |2 R_f[:2]| = 2 sqrt(2)
+    turned = gt.copy()
+    turned[2] = np.diag([-1.0, -1.0, 1.0]) @ gt[2]
+    per_frame = rotation_error_per_frame(turned, gt)
+    assert per_frame[2] > 1.0 and per_frame.mean() == pytest.approx(rotation_error(turned, gt))
+    # with one frame in five flipped the best global fit is still close to the identity
+    assert np.delete(per_frame, 2).max() < 1.0
+    with pytest.raises(ValidationError, match=r"gt_rotations: expected \(F, 3, 3\) with F = 5"):
+        rotation_error(gt, gt[:4])
 
 
 def test_shape_mismatch_is_a_clear_error(rng):
