@@ -99,6 +99,9 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
 
     seq = long_sequence(int(path.split(":")[1])) if path.startswith("synthetic:") else nrsfm.load_sequence(path)
     seq = drop_entries(seq, missing)
+    # object-frame e3D and the camera error need ground-truth cameras that move: dance's file has no Rs, and the
+    # rows fitted to its S are one static camera, against which the solvers' per-frame rotations mean nothing
+    moving_camera = seq.camera_rotations is not None and bool(np.ptp(seq.camera_rotations, axis=0).max() > 1e-9)
     rows = []
     for m in methods:
         row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
@@ -119,7 +122,7 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
         row.update(status="ok", seconds=rec.runtime_s, iterations=rec.iterations, converged=rec.converged,
                    e3d_camera=e3d(rec.points_3d, seq.points_3d),
                    normalized_error=normalized_error(rec.points_3d, seq.points_3d))
-        if seq.camera_rotations is not None and rec.rotations is not None:
+        if moving_camera and rec.rotations is not None:
             row["e3d_object"] = e3d(rec.points_3d, seq.points_3d, frame="object", pred_rotations=rec.rotations,
                                     gt_rotations=seq.camera_rotations)
             row["rotation_error"] = rotation_error(rec.rotations, seq.camera_rotations)
