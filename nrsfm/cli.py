@@ -183,7 +183,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
             print(f"  e3D (camera frame):   {metrics['e3d']:.6g}")
             if "e3d_object" in metrics:
                 print(f"  e3D (object frame):   {metrics['e3d_object']:.6g}")
-                print(f"  camera error (NIPS08): {metrics['rotation_error']:.6g}")
+                print(f"  camera error:         {metrics['rotation_error']:.6g}")
             print(f"  normalised error:     {metrics['normalized_error']:.6g}")
             print(f"  MPJPE (data units):   {metrics['mpjpe']:.6g}")
         else:
