@@ -95,13 +95,13 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
     method (errors recorded, never raised). ``settings="reference"`` applies :data:`REFERENCE_SETTINGS`."""
     import nrsfm
     from nrsfm.errors import NRSfMError
-    from nrsfm.metrics import e3d, normalized_error, rotation_error
+    from nrsfm.metrics import camera_moves, e3d, normalized_error, rotation_error
 
     seq = long_sequence(int(path.split(":")[1])) if path.startswith("synthetic:") else nrsfm.load_sequence(path)
     seq = drop_entries(seq, missing)
     # object-frame e3D and the camera error need ground-truth cameras that move: dance's file has no Rs, and the
     # rows fitted to its S are one static camera, against which the solvers' per-frame rotations mean nothing
-    moving_camera = seq.camera_rotations is not None and bool(np.ptp(seq.camera_rotations, axis=0).max() > 1e-9)
+    moving_camera = seq.camera_rotations is not None and camera_moves(seq.camera_rotations)
     rows = []
     for m in methods:
         row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
@@ -195,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
             label = r["method"] + (f" ({r['settings']})" if r["settings"] != "default" else "")
             table.append([name, label, f"{r['e3d_camera']:.4f}",
                           f"{r['e3d_object']:.4f}" if "e3d_object" in r else "–",
-                          f"{r['rotation_error']:.4f}" if "rotation_error" in r else "–", f"{r['normalized_error']:.4f}",
+                          f"{r['rotation_error']:.4f}" if "rotation_error" in r else "–",
+                          f"{r['normalized_error']:.4f}",
                           f"{r['seconds']:.1f}", refcell, f"{rv[3]:g}" if rv else "–"])
         ok = [r for r in rs if r["status"] == "ok"]
         if ok and best_pub is not None:

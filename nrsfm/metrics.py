@@ -133,6 +133,13 @@ def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarra
     return np.linalg.norm((a @ (u @ vt) - b).reshape(-1, 2, 3), axis=(1, 2))
 
 
+def camera_moves(rotations: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether `(F, 3, 3)` camera ``rotations`` differ between frames. Against a static ground-truth camera
+    (CMU dance: no ``Rs`` in the file, the rows fitted to its ``S`` are one camera) the object frame and the
+    camera error carry no information about a solver's per-frame rotations."""
+    return bool(np.ptp(np.asarray(rotations, dtype=np.float64), axis=0).max() > tol)
+
+
 def rotation_error(pred_rotations: np.ndarray, gt_rotations: np.ndarray) -> float:
     """Mean of :func:`rotation_error_per_frame`."""
     return float(rotation_error_per_frame(pred_rotations, gt_rotations).mean())
@@ -259,14 +266,14 @@ def stress(pred: np.ndarray, gt: np.ndarray) -> float:
 def classic_metrics(pred: np.ndarray, gt: np.ndarray, *, pred_rotations: np.ndarray | None = None,
                     gt_rotations: np.ndarray | None = None) -> dict[str, float]:
     """The numbers ``nrsfm solve`` prints: e3D (camera frame, and object frame and the camera error of
-    :func:`rotation_error` when both rotations are known), normalised error and MPJPE (PRN protocol, in the
-    data's units)."""
+    :func:`rotation_error` when both rotations are known and the ground-truth camera moves), normalised error
+    and MPJPE (PRN protocol, in the data's units)."""
     out = {
         "e3d": e3d(pred, gt),
         "normalized_error": normalized_error(pred, gt),
         "mpjpe": mpjpe_prn(pred, gt),
     }
-    if pred_rotations is not None and gt_rotations is not None:
+    if pred_rotations is not None and gt_rotations is not None and camera_moves(gt_rotations):
         out["e3d_object"] = e3d(pred, gt, frame="object", pred_rotations=pred_rotations, gt_rotations=gt_rotations)
         out["rotation_error"] = rotation_error(pred_rotations, gt_rotations)
     return out

@@ -6,8 +6,8 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from nrsfm import ValidationError
-from nrsfm.metrics import (e3d, e3d_per_frame, mpjpe_best_flip, mpjpe_prn, normalized_error, pa_mpjpe,
-                           rotation_error, rotation_error_per_frame, stress)
+from nrsfm.metrics import (camera_moves, classic_metrics, e3d, e3d_per_frame, mpjpe_best_flip, mpjpe_prn,
+                           normalized_error, pa_mpjpe, rotation_error, rotation_error_per_frame, stress)
 
 MIRROR = np.array([1.0, 1.0, -1.0])
 
@@ -82,6 +82,12 @@ def test_rotation_error_known_values():
     assert np.delete(per_frame, 2).max() < 1.0
     with pytest.raises(ValidationError, match=r"gt_rotations: expected \(F, 3, 3\) with F = 5"):
         rotation_error(gt, gt[:4])
+    # a static ground-truth camera: no object frame or camera error in the classic metrics
+    shapes = np.random.default_rng(0).standard_normal((5, 6, 3))
+    static = np.broadcast_to(frame, (5, 3, 3))
+    assert camera_moves(gt) and not camera_moves(static)
+    assert "rotation_error" in classic_metrics(shapes, shapes, pred_rotations=gt, gt_rotations=gt)
+    assert "e3d_object" not in classic_metrics(shapes, shapes, pred_rotations=gt, gt_rotations=static)
 
 
 def test_shape_mismatch_is_a_clear_error(rng):
