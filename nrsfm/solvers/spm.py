@@ -38,6 +38,7 @@ else :func:`auto_rank` (the smallest K whose 3K singular values hold 99.5% of th
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,8 @@ from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, register
+
+log = logging.getLogger(__name__)
 
 AUTHORS_K = {"drink": 12, "pickup": 12, "yoga": 10, "stretch": 11, "dance": 10, "face": 7, "walking": 8,
              "shark": 4, "jaws": 4, "jaws_rearranged": 4}
@@ -112,16 +115,26 @@ def rotation_program(pi: np.ndarray, trace_weight: float) -> np.ndarray:
 
 
 def _solve(problem, variable, what: str) -> np.ndarray:
-    """Solve a cvxpy problem with Clarabel, falling back to SCS; the variable's value."""
+    """Solve a cvxpy problem with Clarabel, falling back to SCS; the variable's value.
+
+    A solution the solver flags as inaccurate is kept (Clarabel's are still close on the programs here) and
+    reported through this module's logger instead of cvxpy's ``UserWarning``.
+    """
+    import warnings
+
     import cvxpy as cp
 
     for solver in ("CLARABEL", "SCS"):
         try:
-            problem.solve(solver=solver)
-            if variable.value is not None:
-                return variable.value
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+                problem.solve(solver=solver)
         except (cp.error.SolverError, ValueError):
             continue
+        if variable.value is not None:
+            if problem.status != cp.OPTIMAL:
+                log.warning("spm: %s flags the %s program's solution as %s", solver, what, problem.status)
+            return variable.value
     raise SolverError(f"spm: the {what} program failed ({problem.status})")
 
 
