@@ -95,13 +95,10 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
     method (errors recorded, never raised). ``settings="reference"`` applies :data:`REFERENCE_SETTINGS`."""
     import nrsfm
     from nrsfm.errors import NRSfMError
-    from nrsfm.metrics import camera_moves, e3d, normalized_error, rotation_error
+    from nrsfm.metrics import classic_metrics
 
     seq = long_sequence(int(path.split(":")[1])) if path.startswith("synthetic:") else nrsfm.load_sequence(path)
     seq = drop_entries(seq, missing)
-    # object-frame e3D and the camera error need ground-truth cameras that move: dance's file has no Rs, and the
-    # rows fitted to its S are one static camera, against which the solvers' per-frame rotations mean nothing
-    moving_camera = seq.camera_rotations is not None and camera_moves(seq.camera_rotations)
     rows = []
     for m in methods:
         row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
@@ -119,13 +116,12 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
             row.update(status="not run", why=str(exc), seconds=time.perf_counter() - t0)
             rows.append(row)
             continue
+        # the numbers of `nrsfm solve`: object frame and camera error only against a moving ground-truth camera
+        metrics = classic_metrics(rec.points_3d, seq.points_3d, pred_rotations=rec.rotations,
+                                  gt_rotations=seq.camera_rotations)
         row.update(status="ok", seconds=rec.runtime_s, iterations=rec.iterations, converged=rec.converged,
-                   e3d_camera=e3d(rec.points_3d, seq.points_3d),
-                   normalized_error=normalized_error(rec.points_3d, seq.points_3d))
-        if moving_camera and rec.rotations is not None:
-            row["e3d_object"] = e3d(rec.points_3d, seq.points_3d, frame="object", pred_rotations=rec.rotations,
-                                    gt_rotations=seq.camera_rotations)
-            row["rotation_error"] = rotation_error(rec.rotations, seq.camera_rotations)
+                   e3d_camera=metrics["e3d"], normalized_error=metrics["normalized_error"])
+        row.update({key: metrics[key] for key in ("e3d_object", "rotation_error") if key in metrics})
         rows.append(row)
     return rows
 
