@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from nrsfm._malloc import large_arrays_on_heap
 from nrsfm.errors import SolverError, ValidationError, shape_error
 from nrsfm.sequence import Sequence
 
@@ -126,7 +127,8 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
             if seq.n_frames < 2:
                 raise SolverError(f"{name}: expected at least 2 frames, got {seq.n_frames}")
             t0 = time.perf_counter()
-            rec = fn(seq, params)
+            with large_arrays_on_heap():  # no mmap/munmap of large temporaries every iteration (nrsfm._malloc)
+                rec = fn(seq, params)
             return dataclasses.replace(rec, runtime_s=time.perf_counter() - t0,
                                        params=dataclasses.asdict(params))
 
