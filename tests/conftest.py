@@ -41,3 +41,22 @@ def h36m_dir() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def _central_differences(value, x, h: float = 1e-6):
+    """Central finite differences of the scalar ``value(x)`` for every entry of the torch tensor ``x``."""
+    import torch
+
+    fd = torch.zeros_like(x)
+    for idx in np.ndindex(*x.shape):
+        xp, xm = x.clone(), x.clone()
+        xp[idx] += h
+        xm[idx] -= h
+        fd[idx] = (value(xp) - value(xm)) / (2 * h)
+    return fd
+
+
+@pytest.fixture
+def central_differences():
+    """``central_differences(value, x, h=1e-6)``: the finite-difference gradient of a scalar function of a tensor."""
+    return _central_differences
