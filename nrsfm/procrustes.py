@@ -304,16 +304,32 @@ def nuclear_norm_and_subgradient(z):
     return s.sum(dim=-1), sub.transpose(1, 2).reshape(z.shape)
 
 
+def _spectral_function(z, value, derivative):
+    """``sum_k value(s_k)`` over the singular values of ``Z~`` `(3P, n)` for `(B, n, 3, P)` ``z``, and its gradient
+    ``U diag(derivative(s)) V^T`` reshaped like ``z``."""
+    torch = _torch()
+    b, n = z.shape[:2]
+    mat = z.reshape(b, n, -1).transpose(1, 2)
+    u, s, vt = torch.linalg.svd(mat, full_matrices=False)
+    grad = (u * derivative(s).unsqueeze(-2)) @ vt
+    return value(s).sum(dim=-1), grad.transpose(1, 2).reshape(z.shape)
+
+
 def smoothed_nuclear_norm_and_gradient(z, smoothing: float):
     """``sum_k sqrt(s_k^2 + e^2)`` of ``Z~`` `(3P, n)` and its gradient ``U diag(s / sqrt(s^2 + e^2)) V^T``.
 
     A differentiable surrogate of the nuclear norm (``e = smoothing``, in the
     units of the singular values) used by the per-sequence PR solver.
     """
-    torch = _torch()
-    b, n = z.shape[:2]
-    mat = z.reshape(b, n, -1).transpose(1, 2)
-    u, s, vt = torch.linalg.svd(mat, full_matrices=False)
-    root = torch.sqrt(s * s + smoothing * smoothing)
-    grad = (u * (s / root).unsqueeze(-2)) @ vt
-    return root.sum(dim=-1), grad.transpose(1, 2).reshape(z.shape)
+    e2 = smoothing * smoothing
+    return _spectral_function(z, lambda s: (s * s + e2).sqrt(), lambda s: s / (s * s + e2).sqrt())
+
+
+def log_det_and_gradient(z, offset: float):
+    """``sum_k log sqrt(s_k^2 + d^2)`` of ``Z~`` `(3P, n)` and its gradient ``U diag(s / (s^2 + d^2)) V^T``.
+
+    The log-determinant rank surrogate of the per-sequence PR solver (``d = offset``, in the units of the
+    singular values).
+    """
+    d2 = offset * offset
+    return _spectral_function(z, lambda s: 0.5 * (s * s + d2).log(), lambda s: s / (s * s + d2))

@@ -359,6 +359,18 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
                                 "camera_columns": cam_cols})
 
 
+def fits_csf2(n_frames: int, n_points: int) -> bool:
+    """Whether CSF2 can run: it needs 3K <= min(2F, P) with K >= 2."""
+    return min(2 * n_frames, n_points) >= 6
+
+
+def csf2_start(seq: Sequence, K: int = 0) -> np.ndarray:
+    """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
+    3K <= min(2F, P) (0: the automatic rule). Check :func:`fits_csf2` first."""
+    k = min(K, min(2 * seq.n_frames, seq.n_points) // 3)
+    return solve_csf2.__wrapped__(seq, CSF2Params(K=k)).points_3d
+
+
 def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np.ndarray, x: np.ndarray,
                    n_iter: int, ridge: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Alternating least squares on the visible entries of `(2F, P)` wc (S-step, X-step; X re-orthonormalised).

@@ -84,6 +84,7 @@ from nrsfm.errors import SolverError, ValidationError
 from nrsfm.procrustes import proper_procrustes, skew
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, register, require_visible_points
+from nrsfm.solvers.csf2 import csf2_start, fits_csf2
 
 _DT = torch.float64
 
@@ -409,7 +410,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     if probe_iter < 0:
         probe_iter = PROBE_ITER_EXACT if kind == "factorisation" and exactly_low_rank(seq) else 0
     probe_iter = min(probe_iter, params.max_iter)
-    if params.init == "auto" and kind == "factorisation" and probe_iter > 0 and _csf2_fits(seq):
+    if params.init == "auto" and kind == "factorisation" and probe_iter > 0 and fits_csf2(n, p):
         # both starts for probe_iter iterations; the lower PND cost goes on
         probes = [iterate(begin(_start_shapes(seq, params, k)), probe_iter) for k in ("factorisation", "csf2")]
         best = min(range(2), key=lambda i: probes[i]["cost"])
@@ -450,14 +451,9 @@ def _init_kind(seq: Sequence, params: EMPNDParams) -> str:
     kind = params.init
     if kind == "auto":
         kind = "factorisation" if bool((seq.weights > 0).all()) else "csf2"
-    if kind == "csf2" and not _csf2_fits(seq):
+    if kind == "csf2" and not fits_csf2(seq.n_frames, seq.n_points):
         return "rigid"  # documented fallback
     return kind
-
-
-def _csf2_fits(seq: Sequence) -> bool:
-    """CSF2 needs 3K <= min(2F, P) with K >= 2."""
-    return min(2 * seq.n_frames, seq.n_points) >= 6
 
 
 def _start_shapes(seq: Sequence, params: EMPNDParams, kind: str) -> np.ndarray:
@@ -470,10 +466,7 @@ def _start_shapes(seq: Sequence, params: EMPNDParams, kind: str) -> np.ndarray:
 
         return factorisation_start(seq.points_2d)
     if kind == "csf2":
-        from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
-
-        k = min(params.init_K, min(2 * seq.n_frames, seq.n_points) // 3)
-        return solve_csf2.__wrapped__(seq, CSF2Params(K=k)).points_3d
+        return csf2_start(seq, params.init_K)
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
     return solve_rank3.__wrapped__(seq, Rank3Params()).points_3d

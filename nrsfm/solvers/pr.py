@@ -114,7 +114,7 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     import scipy.optimize
     import torch
 
-    from nrsfm.procrustes import align, align_vjp, smoothed_nuclear_norm_and_gradient
+    from nrsfm.procrustes import align, align_vjp, log_det_and_gradient, smoothed_nuclear_norm_and_gradient
 
     if seq.projection != "orthographic":
         raise SolverError(f"pr: expected orthographic tracks, got {seq.projection}; normalise perspective "
@@ -191,35 +191,19 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
                                                      "init": init_used})
 
 
-def log_det_and_gradient(z, offset: float):
-    """``sum_k log sqrt(s_k^2 + d^2)`` of ``Z~`` `(b, n, 3, P)` (as `(3P, n)` matrices) and its gradient
-    ``U diag(s / (s^2 + d^2)) V^T`` (``d = offset``, in the units of the singular values)."""
-    import torch
-
-    b, n = z.shape[:2]
-    mat = z.reshape(b, n, -1).transpose(1, 2)
-    u, s, vt = torch.linalg.svd(mat, full_matrices=False)
-    d2 = offset * offset
-    grad = (u * (s / (s * s + d2)).unsqueeze(-2)) @ vt
-    return 0.5 * torch.log(s * s + d2).sum(dim=-1), grad.transpose(1, 2).reshape(z.shape)
-
-
 def _start(p2: np.ndarray, params: PRParams) -> tuple[np.ndarray, str]:
     """`(F, P, 3)` starting shapes for the normalised, centred, completed tracks ``p2`` `(F, P, 2)`, and the
     start used (``"csf2"`` falls back to ``"rigid"`` where CSF2 cannot run)."""
+    from nrsfm.solvers.csf2 import csf2_start, fits_csf2
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
-    n_frames, n_points = p2.shape[:2]
     seq = Sequence(points_2d=p2)
-    if params.init == "csf2" and min(2 * n_frames, n_points) >= 6:
-        from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
-
-        k = min(params.init_K, min(2 * n_frames, n_points) // 3)
+    if params.init == "csf2" and fits_csf2(seq.n_frames, seq.n_points):
         try:
-            return solve_csf2.__wrapped__(seq, CSF2Params(K=k)).points_3d, "csf2"
+            return csf2_start(seq, params.init_K), "csf2"
         except SolverError as err:
             log.info("pr: CSF2's start failed (%s); starting from the rigid factorisation", err)
     elif params.init == "csf2":
         log.info("pr: min(2F, P) = %d is too small for CSF2's start; starting from the rigid factorisation",
-                 min(2 * n_frames, n_points))
+                 min(2 * seq.n_frames, seq.n_points))
     return solve_rank3.__wrapped__(seq, Rank3Params()).points_3d, "rigid"
