@@ -5,7 +5,7 @@ import json
 import numpy as np
 import scipy.io
 
-from benchmarks import classic, table1
+from benchmarks import classic, pr_sweep, table1
 from nrsfm.datasets.synthetic import lowrank_sequence
 
 
@@ -55,3 +55,19 @@ def test_classic_on_small_files(tmp_path, capsys):
                          "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| synthetic-60x17 | rank3 |" in text and "Speed targets" in text
+
+
+def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(pr_sweep, "CONFIGS", [(label, {**cfg, "max_iter": 50}) for label, cfg in pr_sweep.CONFIGS])
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    seq = lowrank_sequence(30, 10, 2, seed=0)
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    out = tmp_path / "out"
+    assert pr_sweep.main(["--root", str(tmp_path / "data"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| paper: nuclear, uncentred, rigid start |" in text and "| logdet d=0.001, CSF2 reference K |" in text
+    rows = json.loads((out / "pr_sweep.json").read_text())["rows"]
+    assert len(rows) == len(pr_sweep.CONFIGS) and all(r["status"] == "ok" for r in rows)
+    assert {r["init"] for r in rows} == {"rigid", "csf2"}
+    assert pr_sweep.main(["--root", str(tmp_path / "nowhere")]) == 2
