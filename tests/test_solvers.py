@@ -473,6 +473,42 @@ def test_every_registered_solver_returns_finite_shapes_on_a_rigid_sequence():
         assert np.isfinite(rec.points_3d).all() and rec.points_3d.shape == (12, 9, 3), name
 
 
+def _degenerate(case: str) -> Sequence:
+    rng = np.random.default_rng(0)
+    if case == "rigid":
+        return lowrank_sequence(12, 9, 1, seed=4)
+    if case == "planar":
+        shape = np.c_[rng.standard_normal((10, 2)), np.zeros(10)]
+        pts = np.einsum("fij,pj->fpi", lowrank_sequence(10, 10, 1, seed=0).camera_rotations, shape)
+        return Sequence(points_2d=pts[..., :2], points_3d=pts)
+    if case == "two_frames":
+        return lowrank_sequence(2, 10, 2, seed=0)
+    if case == "static_camera":  # one frame repeated: no 3D information at all
+        return Sequence(points_2d=np.repeat(lowrank_sequence(10, 10, 1, seed=0).points_2d[:1], 10, axis=0))
+    vis = np.ones((30, 12))
+    vis[5] = 0  # "frame_all_missing"
+    return lowrank_sequence(30, 12, 2, seed=0).replace(visibility=vis)
+
+
+@pytest.mark.parametrize("case", ["rigid", "planar", "two_frames", "static_camera", "frame_all_missing"])
+def test_every_solver_gives_finite_shapes_or_a_clear_error_on_degenerate_input(case):
+    """The issue's degenerate inputs, for every registered solver: finite shapes and cameras, or an NRSfMError
+    whose message names the solver (never NaN, never a bare error from a library underneath)."""
+    from nrsfm.errors import NRSfMError
+
+    seq = _degenerate(case)
+    for name in available_solvers():
+        try:
+            rec = solve(seq, name)
+        except NRSfMError as err:
+            assert str(err).startswith(f"{name}:"), (name, str(err))
+            continue
+        assert rec.points_3d.shape == (seq.n_frames, seq.n_points, 3), name
+        assert np.isfinite(rec.points_3d).all() and np.isfinite(rec.rotations).all(), name
+        if case == "frame_all_missing":
+            raise AssertionError(f"{name} solved a sequence with an empty frame")
+
+
 def test_large_arrays_on_heap_is_scoped_and_harmless():
     import platform
 

@@ -198,8 +198,12 @@ def refine_triple(pi: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, float]:
         grad = pa.T @ (ca[:, None] * a + co[:, None] * b) + pb.T @ (cb[:, None] * b + co[:, None] * a)
         return 0.5 * float(e @ e + o @ o), grad.ravel()
 
+    # LM needs at least as many residuals (2F) as unknowns (3r); with fewer frames (two frames, K >= 1) the
+    # trust-region solver polishes instead
+    method = "lm" if 2 * pi.shape[0] >= 3 * r else "trf"
+
     def polish(g_flat: np.ndarray) -> tuple[np.ndarray, float]:
-        res = scipy.optimize.least_squares(residual, g_flat, method="lm", max_nfev=2000, xtol=1e-12, ftol=1e-12)
+        res = scipy.optimize.least_squares(residual, g_flat, method=method, max_nfev=2000, xtol=1e-12, ftol=1e-12)
         return res.x, float(res.cost)
 
     bfgs = scipy.optimize.minimize(cost_grad, g0.ravel(), jac=True, method="BFGS",
