@@ -44,6 +44,7 @@ def test_classic_on_small_files(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "| tiny | rank3 |" in text and "| tiny | pr |" in text
     rows = json.loads((out / "classic.json").read_text())["rows"]
+    assert (out / "classic.png").read_bytes().startswith(b"\x89PNG")
     bound = {"rank3": 1e-6, "pr": 1e-3}
     assert all(r["status"] == "ok" and r["e3d_camera"] < bound[r["method"]] for r in rows)
     assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3", "--missing", "0.2",
@@ -55,6 +56,22 @@ def test_classic_on_small_files(tmp_path, capsys):
                          "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| synthetic-60x17 | rank3 |" in text and "Speed targets" in text
+
+
+def test_classic_without_data_runs_the_stand_ins_and_refuses_unknown_names(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    out = tmp_path / "out"
+    assert classic.main(["--methods", "csf2", "--long", "0", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "synthetic stand-ins, no CMU data" in text
+    rows = json.loads((out / "classic.json").read_text())["rows"]
+    assert [r["sequence"] for r in rows] == list(classic.STAND_INS)
+    assert all(r["status"] == "ok" and r["e3d_camera"] < 0.02 for r in rows)
+    assert classic.main(["--sequences", "drink", "--long", "0", "--out", str(out)]) == 2
+    assert "--sequences: expected names among ['synthetic-lowrank-300x41'" in capsys.readouterr().err
+    (tmp_path / "data" / "nrsfm").mkdir(parents=True)  # an explicit folder without files is an error
+    assert classic.main(["--root", str(tmp_path / "data"), "--out", str(out)]) == 2
+    assert "expected CMU sequence files (.mat), found none" in capsys.readouterr().err
 
 
 def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
