@@ -111,6 +111,51 @@ def stand_in(name: str):
     raise ValueError(f"stand-in: expected one of {STAND_INS}, got {name!r}")
 
 
+def benchmark_sequences(root: str | None, sequences: str | None, who: str) -> tuple[Path | None, list[str]]:
+    """The sequences a benchmark runs: the `.mat` files under ``root/nrsfm`` (``$NRSFM_DATA`` when ``root`` is
+    None) or, with neither, the names of :data:`STAND_INS`; narrowed to the comma-separated ``sequences``.
+
+    Returns:
+        The data folder (None for the stand-ins) and the jobs for :func:`load_benchmark_sequence`.
+
+    Raises:
+        NRSfMError / ValueError: a named folder that does not exist or holds no files, an unknown sequence name.
+    """
+    from nrsfm.datasets import find_dataset, list_cmu_sequences
+    from nrsfm.datasets.paths import data_root
+
+    folder = find_dataset("nrsfm", root, required=root is not None or data_root() is not None)
+    if folder is None:
+        log.info("%s: no CMU data ($NRSFM_DATA is not set and no --root): running on the synthetic stand-ins %s; "
+                 "pass --root DIR for the CMU files", who, ", ".join(STAND_INS))
+        files = list(STAND_INS)
+    else:
+        files = [str(f) for f in list_cmu_sequences(folder)]
+        if not files:
+            raise ValueError(f"{folder}: expected CMU sequence files (.mat), found none; point --root or "
+                             "$NRSFM_DATA at the folder holding nrsfm/")
+    if sequences:
+        want = [s.strip() for s in sequences.split(",") if s.strip()]
+        names = [Path(f).stem for f in files]
+        unknown = [w for w in want if w not in names]
+        if unknown:
+            raise ValueError(f"--sequences: expected names among {names}, got {', '.join(unknown)}")
+        files = [f for f, n in zip(files, names) if n in want]
+    return folder, files
+
+
+def load_benchmark_sequence(job: str):
+    """A job of :func:`benchmark_sequences` (a file or a stand-in name), or ``synthetic:F`` for
+    :func:`long_sequence`, as a :class:`~nrsfm.sequence.Sequence`."""
+    import nrsfm
+
+    if job.startswith("synthetic:"):
+        return long_sequence(int(job.split(":")[1]))
+    if job in STAND_INS:
+        return stand_in(job)
+    return nrsfm.load_sequence(job)
+
+
 def solve_sequence(path: str, methods: list[str], missing: float, settings: str = "reference") -> list[dict]:
     """All methods on one sequence (a file, ``synthetic:F`` for :func:`long_sequence` or a name in
     :data:`STAND_INS`); one result row per method (errors recorded, never raised). ``settings="reference"``
@@ -119,12 +164,7 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import classic_metrics
 
-    if path.startswith("synthetic:"):
-        seq = long_sequence(int(path.split(":")[1]))
-    elif path in STAND_INS:
-        seq = stand_in(path)
-    else:
-        seq = nrsfm.load_sequence(path)
+    seq = load_benchmark_sequence(path)
     seq = drop_entries(seq, missing)
     rows = []
     for m in methods:
@@ -156,8 +196,6 @@ def solve_sequence(path: str, methods: list[str], missing: float, settings: str 
 def main(argv: list[str] | None = None) -> int:
     from joblib import Parallel, delayed
 
-    from nrsfm.datasets import find_dataset, list_cmu_sequences
-    from nrsfm.datasets.paths import data_root
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers import available_solvers
 
@@ -177,23 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
-        folder = find_dataset("nrsfm", args.root, required=args.root is not None or data_root() is not None)
-        if folder is None:
-            log.info("classic: no CMU data ($NRSFM_DATA is not set and no --root): running on the synthetic "
-                     "stand-ins %s; pass --root DIR for the CMU files", ", ".join(STAND_INS))
-            files = list(STAND_INS)
-        else:
-            files = [str(f) for f in list_cmu_sequences(folder)]
-            if not files:
-                raise ValueError(f"{folder}: expected CMU sequence files (.mat), found none; point --root "
-                                 "or $NRSFM_DATA at the folder holding nrsfm/")
-        if args.sequences:
-            want = [s.strip() for s in args.sequences.split(",") if s.strip()]
-            names = [Path(f).stem for f in files]
-            unknown = [w for w in want if w not in names]
-            if unknown:
-                raise ValueError(f"--sequences: expected names among {names}, got {', '.join(unknown)}")
-            files = [f for f, n in zip(files, names) if n in want]
+        folder, files = benchmark_sequences(args.root, args.sequences, "classic")
         methods = [m for m in available_solvers() if m != "rank3"] if args.methods is None else \
             [m.strip() for m in args.methods.split(",")]
         for m in methods:
@@ -273,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def plot_results(rows: list[dict], path: Path) -> None:
-    """Grouped bars per sequence: each solver's camera-frame e3D (log scale; the best published e3D of
+    """Grouped bars per sequence (rows with ``sequence``, ``method``, ``status``, ``e3d_camera``, ``seconds``;
+    ``benchmarks.pr_sweep`` passes its configurations as methods): each solver's camera-frame e3D (log scale; the best published e3D of
     :data:`REFERENCE` as a black tick) and its time. Solvers that did not run leave a gap."""
     from nrsfm.plotting import _pyplot, _save
 
@@ -283,7 +306,8 @@ def plot_results(rows: list[dict], path: Path) -> None:
     cell = {(r["sequence"], r["method"]): r for r in rows if r["status"] == "ok"}
     x = np.arange(len(seqs))
     width = 0.8 / max(len(methods), 1)
-    fig, axes = plt.subplots(2, 1, figsize=(max(6.0, 1.3 * len(seqs) + 2), 6.0), sharex=True)
+    label_width = 0.055 * max(len(m) for m in methods + ["best published"])  # inches, for the legend
+    fig, axes = plt.subplots(2, 1, figsize=(max(4.0, 1.3 * len(seqs) + 1.5) + label_width, 6.0), sharex=True)
     for i, m in enumerate(methods):
         pos = x - 0.4 + width * (i + 0.5)
         for ax, key in zip(axes, ("e3d_camera", "seconds")):
@@ -294,7 +318,7 @@ def plot_results(rows: list[dict], path: Path) -> None:
     if (shown[np.isfinite(shown)] > 0).any():  # log scale needs a positive value (exact solves give 0)
         axes[0].set_yscale("log", nonpositive="clip")
     axes[0].set_ylabel("e3D (camera frame)")
-    axes[0].legend(fontsize=7, ncol=len(methods) + 1, markerscale=0.3)
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), markerscale=0.3)
     axes[1].set_ylabel("time per solve (s)")
     axes[1].set_xticks(x, seqs, fontsize=7, rotation=15)
     _save(fig, path, overwrite=True)

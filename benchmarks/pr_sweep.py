@@ -8,7 +8,9 @@ log-determinant of the centred aligned shapes at three offsets, each from
 CSF2 with its automatic K and with the reference K of ``benchmarks.classic``.
 A default is robust when both CSF2 starts end at the same e3D. Prints one
 Markdown table (camera-frame e3D and, per configuration, the summed time) and
-writes CSV/JSON to ``runs/pr_sweep``.
+writes CSV/JSON and a plot (``pr_sweep.png``) to ``runs/pr_sweep``. Without
+data (no ``--root``, ``$NRSFM_DATA`` unset) it runs on the synthetic stand-ins
+of ``benchmarks.classic``.
 """
 
 from __future__ import annotations
@@ -34,11 +36,11 @@ CONFIGS = [
 def run_one(path: str, label: str, config: dict) -> dict:
     """One PR solve; errors are recorded, never raised."""
     import nrsfm
-    from benchmarks.classic import REFERENCE_SETTINGS
+    from benchmarks.classic import REFERENCE_SETTINGS, load_benchmark_sequence
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d
 
-    seq = nrsfm.load_sequence(path)
+    seq = load_benchmark_sequence(path)
     kw = dict(config)
     if kw.get("init_K") == "automatic":
         kw["init_K"] = 0
@@ -56,28 +58,26 @@ def run_one(path: str, label: str, config: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     from joblib import Parallel, delayed
 
-    from nrsfm.datasets import find_dataset, list_cmu_sequences
+    from benchmarks.classic import benchmark_sequences, plot_results
     from nrsfm.errors import NRSfMError
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.pr_sweep", description=__doc__.split("\n\n")[0])
-    p.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA)")
+    p.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
+                                  "stand-ins)")
     p.add_argument("--jobs", type=int, default=1, help="parallel solves (joblib)")
     p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
     p.add_argument("--out", default="runs/pr_sweep", help="output folder (default: runs/pr_sweep)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
-        files = list_cmu_sequences(find_dataset("nrsfm", args.root))
-    except NRSfMError as exc:
+        folder, files = benchmark_sequences(args.root, args.sequences, "pr_sweep")
+    except (NRSfMError, ValueError) as exc:
         print(f"pr_sweep: error: {exc}", file=sys.stderr)
         return 2
-    if args.sequences:
-        want = {s.strip() for s in args.sequences.split(",")}
-        files = [f for f in files if f.stem in want]
     t0 = time.perf_counter()
     log.info("pr_sweep: %d sequences x %d configurations, %d jobs", len(files), len(CONFIGS), args.jobs)
-    rows = Parallel(n_jobs=args.jobs)(delayed(run_one)(str(f), label, cfg) for f in files for label, cfg in CONFIGS)
-    names = [f.stem for f in files]
+    rows = Parallel(n_jobs=args.jobs)(delayed(run_one)(f, label, cfg) for f in files for label, cfg in CONFIGS)
+    names = [Path(f).stem for f in files]
     cell = {(r["sequence"], r["config"]): r for r in rows}
     table = []
     for label, _ in CONFIGS:
@@ -85,13 +85,16 @@ def main(argv: list[str] | None = None) -> int:
         table.append([label, *(f"{r['e3d_camera']:.4f}" if r["status"] == "ok" else f"not run: {r['why']}"
                                for r in rs), f"{sum(r.get('seconds', 0.0) for r in rs):.1f}"])
     md = markdown_table(["configuration (camera-frame e3D)", *names, "time (s), all files"], table)
-    print(f"### PR regulariser and start ({len(files)} CMU files, one thread per solve)\n\n{md}\n")
+    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    print(f"### PR regulariser and start ({where}, one thread per solve)\n\n{md}\n")
     out = Path(args.out)
     write_csv(out / "pr_sweep.csv", [{k: v for k, v in r.items() if k != "params"} | {"params": str(r["params"])}
                                      for r in rows])
-    write_json(out / "pr_sweep.json", {"meta": run_metadata(jobs=args.jobs), "rows": rows})
+    write_json(out / "pr_sweep.json", {"meta": run_metadata(jobs=args.jobs, data=str(folder or "stand-ins")),
+                                       "rows": rows})
     write_text_atomic(out / "pr_sweep.md", md + "\n")
-    print(f"wrote {out}/pr_sweep.md, pr_sweep.csv, pr_sweep.json ({time.perf_counter() - t0:.0f} s)")
+    plot_results([{**r, "method": r["config"]} for r in rows], out / "pr_sweep.png")
+    print(f"wrote {out}/pr_sweep.md, pr_sweep.csv, pr_sweep.json, pr_sweep.png ({time.perf_counter() - t0:.0f} s)")
     return 0
 
 

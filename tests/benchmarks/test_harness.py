@@ -87,4 +87,7 @@ def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
     rows = json.loads((out / "pr_sweep.json").read_text())["rows"]
     assert len(rows) == len(pr_sweep.CONFIGS) and all(r["status"] == "ok" for r in rows)
     assert {r["init"] for r in rows} == {"rigid", "csf2"}
+    assert (out / "pr_sweep.png").read_bytes().startswith(b"\x89PNG")
     assert pr_sweep.main(["--root", str(tmp_path / "nowhere")]) == 2
+    assert pr_sweep.main(["--root", str(tmp_path / "data"), "--sequences", "nope"]) == 2
+    assert "--sequences: expected names among ['tiny'], got nope" in capsys.readouterr().err
