@@ -144,6 +144,15 @@ def benchmark_sequences(root: str | None, sequences: str | None, who: str) -> tu
     return folder, files
 
 
+def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
+    """The ``--root``, ``--jobs`` and ``--sequences`` options of the benchmarks over the CMU files (read with
+    :func:`benchmark_sequences`)."""
+    parser.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
+                                       "stand-ins)")
+    parser.add_argument("--jobs", type=int, default=1, help=jobs_help)
+    parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
+
+
 def load_benchmark_sequence(job: str):
     """A job of :func:`benchmark_sequences` (a file or a stand-in name), or ``synthetic:F`` for
     :func:`long_sequence`, as a :class:`~nrsfm.sequence.Sequence`."""
@@ -200,11 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     from nrsfm.solvers import available_solvers
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.classic", description=__doc__.split("\n\n")[0])
-    p.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
-                                  "stand-ins)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel sequences (joblib)")
+    add_data_arguments(p, "parallel sequences (joblib)")
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
-    p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
     p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
     p.add_argument("--long", type=int, default=3000,
                    help="also time every solver on a synthetic LONG x 17-point sequence (0: skip)")
@@ -296,8 +302,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def plot_results(rows: list[dict], path: Path) -> None:
     """Grouped bars per sequence (rows with ``sequence``, ``method``, ``status``, ``e3d_camera``, ``seconds``;
-    ``benchmarks.pr_sweep`` passes its configurations as methods): each solver's camera-frame e3D (log scale; the best published e3D of
-    :data:`REFERENCE` as a black tick) and its time. Solvers that did not run leave a gap."""
+    ``benchmarks.pr_sweep`` passes its configurations as methods): each solver's camera-frame e3D (log scale;
+    the best published e3D of :data:`REFERENCE` as a black tick) and its time. Solvers that did not run leave
+    a gap."""
     from nrsfm.plotting import _pyplot, _save
 
     plt = _pyplot()

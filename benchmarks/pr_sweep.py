@@ -58,14 +58,11 @@ def run_one(path: str, label: str, config: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     from joblib import Parallel, delayed
 
-    from benchmarks.classic import benchmark_sequences, plot_results
+    from benchmarks.classic import add_data_arguments, benchmark_sequences, plot_results
     from nrsfm.errors import NRSfMError
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.pr_sweep", description=__doc__.split("\n\n")[0])
-    p.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
-                                  "stand-ins)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel solves (joblib)")
-    p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
+    add_data_arguments(p, "parallel solves (joblib)")
     p.add_argument("--out", default="runs/pr_sweep", help="output folder (default: runs/pr_sweep)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
