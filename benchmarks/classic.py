@@ -1,11 +1,12 @@
 """The classic NRSfM benchmark: every registered solver on every CMU sequence.
 
     python -m benchmarks.classic [--root DIR] [--jobs N] [--methods a,b] [--missing 0.2] [--long 3000] [--out DIR]
+                                 [--rerun] [--no-progress]
 
 Reads every `.mat` under ``DIR/nrsfm`` (default ``$NRSFM_DATA/nrsfm``; Akhter
-and PND layouts), solves each with every registered solver (in parallel over
-sequences with joblib; per-sequence seeds come from the sequence name, so
-results do not depend on ``--jobs``), and prints one Markdown table: per
+and PND layouts), solves each with every registered solver (in parallel over the
+(sequence, solver) cells with joblib; per-sequence seeds come from the
+sequence name, so results do not depend on ``--jobs``), and prints one Markdown table: per
 sequence and method the e3D in the camera frame, the e3D in the object frame
 (where the ground truth has a world frame), the camera error of Akhter et al.
 (:func:`nrsfm.metrics.rotation_error`, same files), the normalised error and the run
@@ -19,6 +20,14 @@ Also written as CSV and JSON, with a plot of every e3D beside the best
 published one and of every solve's time (``classic.png``). With no ``--root``
 and ``$NRSFM_DATA`` unset it runs on CMU-sized synthetic stand-ins
 (:data:`STAND_INS`), so a fresh clone without the data runs it too.
+
+Every cell's result is saved under ``OUT/cells`` as soon as it is solved, and a
+later run with the same output folder reuses the saved cells whose input file,
+settings and code (:func:`benchmarks.common.code_hash`) are unchanged: an
+interrupted run resumes where it stopped, and adding a method or a sequence
+solves only the new cells. ``--rerun`` solves everything again (the times in
+the table are those of the run that solved each cell). A progress bar on stderr
+counts the cells (``--no-progress`` hides it).
 """
 
 from __future__ import annotations
@@ -33,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.common import Interrupted, code_hash, markdown_table, run_cells, run_metadata, write_csv, write_json
 
 log = logging.getLogger("benchmarks.classic")
 
@@ -165,46 +174,57 @@ def load_benchmark_sequence(job: str):
     return nrsfm.load_sequence(job)
 
 
-def solve_sequence(path: str, methods: list[str], missing: float, settings: str = "reference") -> list[dict]:
-    """All methods on one sequence (a file, ``synthetic:F`` for :func:`long_sequence` or a name in
-    :data:`STAND_INS`); one result row per method (errors recorded, never raised). ``settings="reference"``
-    applies :data:`REFERENCE_SETTINGS`."""
+def solve_cell(job: str, method: str, missing: float, settings: str = "reference") -> dict:
+    """One solver on one sequence (a file, ``synthetic:F`` for :func:`long_sequence` or a name in
+    :data:`STAND_INS`): one result row (errors recorded, never raised). ``settings="reference"`` applies
+    :data:`REFERENCE_SETTINGS`."""
     import nrsfm
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import classic_metrics
 
-    seq = load_benchmark_sequence(path)
-    seq = drop_entries(seq, missing)
-    rows = []
-    for m in methods:
-        row = {"sequence": seq.name, "method": m, "frames": seq.n_frames, "points": seq.n_points,
-               "missing": missing}
-        overrides = {}
-        if settings == "reference":
-            overrides = dict(REFERENCE_SETTINGS.get(m, {}).get(seq.name, {}))
-            if missing > 0:
-                overrides.update(MISSING_SETTINGS.get(m, {}).get(seq.name, {}))
-        row["settings"] = ",".join(f"{k}={v}" for k, v in overrides.items()) or "default"
-        t0 = time.perf_counter()
-        try:
-            rec = nrsfm.solve(seq, m, **overrides)
-        except NRSfMError as exc:
-            row.update(status="not run", why=str(exc), seconds=time.perf_counter() - t0)
-            rows.append(row)
-            continue
-        # the numbers of `nrsfm solve`: object frame and camera error only against a moving ground-truth camera
-        metrics = classic_metrics(rec.points_3d, seq.points_3d, pred_rotations=rec.rotations,
-                                  gt_rotations=seq.camera_rotations)
-        row.update(status="ok", seconds=rec.runtime_s, iterations=rec.iterations, converged=rec.converged,
-                   e3d_camera=metrics["e3d"], normalized_error=metrics["normalized_error"])
-        row.update({key: metrics[key] for key in ("e3d_object", "rotation_error") if key in metrics})
-        rows.append(row)
-    return rows
+    seq = drop_entries(load_benchmark_sequence(job), missing)
+    row = {"sequence": seq.name, "method": method, "frames": seq.n_frames, "points": seq.n_points,
+           "missing": missing}
+    overrides = {}
+    if settings == "reference":
+        overrides = dict(REFERENCE_SETTINGS.get(method, {}).get(seq.name, {}))
+        if missing > 0:
+            overrides.update(MISSING_SETTINGS.get(method, {}).get(seq.name, {}))
+    row["settings"] = ",".join(f"{k}={v}" for k, v in overrides.items()) or "default"
+    t0 = time.perf_counter()
+    try:
+        rec = nrsfm.solve(seq, method, **overrides)
+    except NRSfMError as exc:
+        return {**row, "status": "not run", "why": str(exc), "seconds": time.perf_counter() - t0}
+    # the numbers of `nrsfm solve`: object frame and camera error only against a moving ground-truth camera
+    metrics = classic_metrics(rec.points_3d, seq.points_3d, pred_rotations=rec.rotations,
+                              gt_rotations=seq.camera_rotations)
+    row.update(status="ok", seconds=rec.runtime_s, iterations=rec.iterations, converged=rec.converged,
+               e3d_camera=metrics["e3d"], normalized_error=metrics["normalized_error"])
+    row.update({key: metrics[key] for key in ("e3d_object", "rotation_error") if key in metrics})
+    return row
+
+
+def job_identity(job: str) -> dict:
+    """What a cached result of ``job`` depends on besides the code: a file's path and the SHA-1 of its bytes (a
+    changed file is solved again), or the name of a generated sequence."""
+    import hashlib
+
+    path = Path(job)
+    if job.startswith("synthetic:") or job in STAND_INS or not path.is_file():
+        return {"job": job}
+    return {"job": str(path.resolve()), "sha1": hashlib.sha1(path.read_bytes()).hexdigest()}
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--rerun`` and ``--no-progress``, shared by the benchmarks that save their cells (:func:`run_cells`)."""
+    parser.add_argument("--rerun", action="store_true",
+                        help="solve every cell again instead of reusing the results an earlier run saved under "
+                             "OUT/cells (by default an interrupted run resumes where it stopped)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
 def main(argv: list[str] | None = None) -> int:
-    from joblib import Parallel, delayed
-
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers import available_solvers
 
@@ -218,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="per-sequence settings that reproduce the reference numbers (default), or every solver's "
                         "automatic defaults")
     p.add_argument("--out", default=None, help="output folder (default: runs/classic[-missingX])")
+    add_run_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
@@ -235,9 +256,19 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     log.info("classic: %d sequences x %s, missing %.0f%%, %d jobs", len(files), methods, 100 * args.missing,
              args.jobs)
+    out = Path(args.out or f"runs/classic{'-missing' + str(args.missing) if args.missing else ''}")
     jobs = ([f"synthetic:{args.long}"] if args.long > 0 else []) + files  # the longest first
-    per_seq = Parallel(n_jobs=args.jobs)(delayed(solve_sequence)(j, methods, args.missing, args.settings) for j in jobs)
-    rows = [r for rs in per_seq for r in rs]
+    code = code_hash(__file__)
+    cells = [(f"{Path(j).stem if j.endswith('.mat') else j.replace(':', '-')}-{m}",
+              {**job_identity(j), "method": m, "missing": args.missing, "settings": args.settings, "code": code},
+              (j, m, args.missing, args.settings)) for j in jobs for m in methods]
+    try:
+        rows, reused = run_cells(cells, solve_cell, jobs=args.jobs, cache_dir=out / "cells", rerun=args.rerun,
+                                 progress=not args.no_progress, desc="classic")
+    except Interrupted as exc:
+        print(exc, file=sys.stderr)
+        return 130
+    per_seq = [rows[i:i + len(methods)] for i in range(0, len(rows), len(methods))]
     table, verdicts = [], []
     for rs in per_seq:
         name = rs[0]["sequence"]
@@ -273,6 +304,9 @@ def main(argv: list[str] | None = None) -> int:
     where = folder if folder is not None else "synthetic stand-ins, no CMU data"
     text = [f"### Classic NRSfM benchmark ({where}, {100 * args.missing:.0f}% missing), e3D and normalised error "
             f"(camera frame unless stated), {os.cpu_count()} CPU cores\n", markdown_table(header, table)]
+    if reused:
+        text.append(f"\n{reused} of {len(cells)} cells were reused from an earlier run saved in {out / 'cells'}, with "
+                    "the times measured then (`--rerun` solves every cell again).")
     limits = {"drink": 60.0, f"synthetic-{args.long}x17": 120.0}
     speed = [[r["sequence"], r["method"], f"{r['seconds']:.1f}", f"{limits[r['sequence']]:.0f}",
               "yes" if r["seconds"] <= limits[r["sequence"]] else "no"]
@@ -285,12 +319,11 @@ def main(argv: list[str] | None = None) -> int:
         text += ["\nBest of ours vs best published (camera-frame e3D, authors' code; NOTES.md):\n",
                  markdown_table(["sequence", "our best", "e3D", "best published", "ours better"], verdicts)]
     print("\n".join(text))
-    out = Path(args.out or f"runs/classic{'-missing' + str(args.missing) if args.missing else ''}")
     total = time.perf_counter() - t0
     meta = run_metadata(benchmark="classic NRSfM",
                         metric="e3D (camera/object frame), camera error (Akhter et al.), normalised error",
                         data=str(where), methods=methods, missing=args.missing, jobs=args.jobs,
-                        settings=args.settings,
+                        settings=args.settings, cells_reused=reused,
                         total_seconds=total)
     write_csv(out / "classic.csv", rows)
     write_json(out / "classic.json", {"meta": meta, "rows": rows})

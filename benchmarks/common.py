@@ -1,4 +1,5 @@
-"""Helpers shared by the table scripts: run metadata, config hashes, atomic CSV/JSON, Markdown."""
+"""Helpers shared by the table scripts: run metadata, config hashes, atomic CSV/JSON, Markdown, and resumable
+parallel runs of independent cells (:func:`run_cells`)."""
 
 from __future__ import annotations
 
@@ -6,17 +7,99 @@ import csv
 import hashlib
 import io
 import json
+import logging
 import os
 import platform
 import subprocess
+import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 
 def config_hash(config: dict[str, Any]) -> str:
     """12 hex digits identifying a configuration (cache keys, output folders)."""
     return hashlib.sha1(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def code_hash(*extra: str | Path) -> str:
+    """12 hex digits of the source of the ``nrsfm`` package and of the ``extra`` files: the part of a cache key
+    that makes a saved result be reused only by the code that computed it (any edit, installed or not, changes
+    it; a git hash would not see uncommitted edits or a pip-installed copy)."""
+    import nrsfm
+
+    digest = hashlib.sha1()
+    files = sorted(Path(nrsfm.__file__).resolve().parent.rglob("*.py")) + [Path(f).resolve() for f in extra]
+    for f in files:
+        digest.update(f.name.encode())
+        digest.update(f.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+class Interrupted(Exception):
+    """Raised by :func:`run_cells` on Ctrl-C; the message says what was saved and how to resume."""
+
+
+def _indexed(i: int, fn: Callable[..., Any], args: tuple) -> tuple[int, Any]:
+    return i, fn(*args)
+
+
+def run_cells(cells: Sequence[tuple[str, dict[str, Any], tuple]], fn: Callable[..., Any], *, jobs: int,
+              cache_dir: Path, rerun: bool = False, progress: bool = True, desc: str = "cells") -> tuple[list, int]:
+    """``fn(*args)`` for every cell ``(label, key, args)``, in parallel over ``jobs`` processes (joblib), each
+    result saved to ``cache_dir/<label>-<config_hash(key)>.json`` as soon as it arrives, so an interrupted run
+    resumes: a later call with the same keys reuses the saved results (unless ``rerun``) and solves only the
+    rest. ``key`` must name everything the result depends on (inputs, parameters, :func:`code_hash`).
+
+    ``fn`` must return JSON-serialisable data (numpy scalars are converted). A tqdm bar on stderr counts the
+    cells still to solve (``progress=False`` hides it). Returns the results in the order of ``cells`` and the
+    number reused. Ctrl-C raises :class:`Interrupted` (the finished cells stay saved).
+    """
+    from joblib import Parallel, delayed
+    from tqdm.auto import tqdm
+
+    results: list[Any] = [None] * len(cells)
+    paths = [cache_dir / f"{label}-{config_hash(key)}.json" for label, key, _ in cells]
+    todo = []
+    for i, path in enumerate(paths):
+        if not rerun and path.exists():
+            try:
+                results[i] = json.loads(path.read_text())
+                continue
+            except (OSError, json.JSONDecodeError):  # a damaged file: solve the cell again
+                pass
+        todo.append(i)
+    reused = len(cells) - len(todo)
+    if reused:
+        logging.getLogger(__name__).info("%s: reusing %d of %d cells saved by an earlier run in %s (--rerun solves "
+                                         "them again)", desc, reused, len(cells), cache_dir)
+    if todo:
+        run = Parallel(n_jobs=jobs, return_as="generator_unordered")(
+            delayed(_indexed)(i, fn, cells[i][2]) for i in todo)
+        done = 0
+        try:
+            with tqdm(total=len(todo), desc=desc, unit="cell", disable=not progress, file=sys.stderr) as bar:
+                for i, result in run:
+                    result = json.loads(json.dumps(result, default=_plain))
+                    write_json(paths[i], result)
+                    results[i] = result
+                    done += 1
+                    bar.update()
+        except KeyboardInterrupt:
+            raise Interrupted(f"{desc}: interrupted after {done} of {len(todo)} cells; every finished cell is saved "
+                              f"in {cache_dir}: run the same command again to resume") from None
+    return results, reused
+
+
+def _plain(value: Any) -> Any:
+    """JSON form of numpy scalars and arrays (``run_cells``)."""
+    import numpy
+
+    if isinstance(value, numpy.generic):
+        return value.item()
+    if isinstance(value, numpy.ndarray):
+        return value.tolist()
+    raise TypeError(f"run_cells: a result holds {type(value).__name__}, expected JSON data")
 
 
 def git_hash() -> str:

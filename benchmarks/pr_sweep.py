@@ -1,6 +1,7 @@
 """PR's regulariser and start on the CMU files: the study behind PR's defaults (``nrsfm/solvers/pr.py``).
 
     OMP_NUM_THREADS=1 python -m benchmarks.pr_sweep [--root DIR] [--jobs N] [--sequences a,b] [--out DIR]
+                                                    [--rerun] [--no-progress]
 
 Runs the ``pr`` solver on every file under ``DIR/nrsfm`` with the paper's
 formulation (nuclear norm of the aligned shapes, rigid start) and with the
@@ -10,7 +11,8 @@ A default is robust when both CSF2 starts end at the same e3D. Prints one
 Markdown table (camera-frame e3D and, per configuration, the summed time) and
 writes CSV/JSON and a plot (``pr_sweep.png``) to ``runs/pr_sweep``. Without
 data (no ``--root``, ``$NRSFM_DATA`` unset) it runs on the synthetic stand-ins
-of ``benchmarks.classic``.
+of ``benchmarks.classic``. Solves are saved and resumed as in ``benchmarks.classic``
+(``OUT/cells``; ``--rerun`` solves everything again).
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json, write_text_atomic
+from benchmarks.common import (Interrupted, code_hash, config_hash, markdown_table, run_cells, run_metadata, write_csv,
+                               write_json,
+                               write_text_atomic)
 
 log = logging.getLogger("benchmarks.pr_sweep")
 
@@ -56,14 +60,14 @@ def run_one(path: str, label: str, config: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from joblib import Parallel, delayed
-
-    from benchmarks.classic import add_data_arguments, benchmark_sequences, plot_results
+    from benchmarks.classic import add_data_arguments, add_run_arguments, benchmark_sequences, job_identity, \
+        plot_results
     from nrsfm.errors import NRSfMError
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.pr_sweep", description=__doc__.split("\n\n")[0])
     add_data_arguments(p, "parallel solves (joblib)")
     p.add_argument("--out", default="runs/pr_sweep", help="output folder (default: runs/pr_sweep)")
+    add_run_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
@@ -73,7 +77,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     log.info("pr_sweep: %d sequences x %d configurations, %d jobs", len(files), len(CONFIGS), args.jobs)
-    rows = Parallel(n_jobs=args.jobs)(delayed(run_one)(f, label, cfg) for f in files for label, cfg in CONFIGS)
+    out = Path(args.out)
+    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    cells = [(f"{Path(f).stem}-{config_hash({'label': label})}", {**job_identity(f), "config": cfg, "code": code},
+              (f, label, cfg)) for f in files for label, cfg in CONFIGS]
+    try:
+        rows, reused = run_cells(cells, run_one, jobs=args.jobs, cache_dir=out / "cells", rerun=args.rerun,
+                                 progress=not args.no_progress, desc="pr_sweep")
+    except Interrupted as exc:
+        print(exc, file=sys.stderr)
+        return 130
     names = [Path(f).stem for f in files]
     cell = {(r["sequence"], r["config"]): r for r in rows}
     table = []
@@ -84,10 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     md = markdown_table(["configuration (camera-frame e3D)", *names, "time (s), all files"], table)
     where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
     print(f"### PR regulariser and start ({where}, one thread per solve)\n\n{md}\n")
-    out = Path(args.out)
     write_csv(out / "pr_sweep.csv", [{k: v for k, v in r.items() if k != "params"} | {"params": str(r["params"])}
                                      for r in rows])
-    write_json(out / "pr_sweep.json", {"meta": run_metadata(jobs=args.jobs, data=str(folder or "stand-ins")),
+    write_json(out / "pr_sweep.json", {"meta": run_metadata(jobs=args.jobs, data=str(folder or "stand-ins"),
+                                                           cells_reused=reused),
                                        "rows": rows})
     write_text_atomic(out / "pr_sweep.md", md + "\n")
     plot_results([{**r, "method": r["config"]} for r in rows], out / "pr_sweep.png")

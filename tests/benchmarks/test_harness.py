@@ -1,11 +1,14 @@
 """The benchmark scripts run end to end on tiny inputs and write what they promise."""
 
 import json
+import logging
 
 import numpy as np
+import pytest
 import scipy.io
 
 from benchmarks import classic, pr_sweep, table1
+from benchmarks.common import Interrupted, run_cells
 from nrsfm.datasets.synthetic import lowrank_sequence
 
 
@@ -91,3 +94,64 @@ def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
     assert pr_sweep.main(["--root", str(tmp_path / "nowhere")]) == 2
     assert pr_sweep.main(["--root", str(tmp_path / "data"), "--sequences", "nope"]) == 2
     assert "--sequences: expected names among ['tiny'], got nope" in capsys.readouterr().err
+
+
+_CALLS: list[int] = []
+
+
+def _square_or_fail(x: int, fail_at: int, ctrl_c_at: int = -1) -> dict:
+    _CALLS.append(x)
+    if x == fail_at:
+        raise RuntimeError("interrupted")
+    if x == ctrl_c_at:
+        raise KeyboardInterrupt
+    return {"x": x, "square": np.int64(x * x), "root": np.float64(x) ** 0.5}
+
+
+def test_run_cells_saves_each_cell_and_resumes_after_an_interruption(tmp_path):
+    cells = [(f"c{x}", {"x": x}, (x, 3)) for x in range(5)]
+    with pytest.raises(RuntimeError, match="interrupted"):
+        run_cells(cells, _square_or_fail, jobs=1, cache_dir=tmp_path, progress=False)
+    assert len(list(tmp_path.glob("c*.json"))) == 3  # cells 0-2 were saved before cell 3 failed
+    _CALLS.clear()
+    fixed = [(label, key, (args[0], -1)) for label, key, args in cells]
+    results, reused = run_cells(fixed, _square_or_fail, jobs=1, cache_dir=tmp_path, progress=False)
+    assert reused == 3 and _CALLS == [3, 4]
+    assert results == [{"x": x, "square": x * x, "root": x**0.5} for x in range(5)]
+    _CALLS.clear()
+    (tmp_path / next(p.name for p in tmp_path.glob("c4-*.json"))).write_text("{damaged")
+    assert run_cells(fixed, _square_or_fail, jobs=1, cache_dir=tmp_path, progress=False)[1] == 4 and _CALLS == [4]
+    _CALLS.clear()
+    assert run_cells(fixed, _square_or_fail, jobs=1, cache_dir=tmp_path, progress=False, rerun=True)[1] == 0
+    assert _CALLS == list(range(5))
+    ctrl_c = [(f"d{x}", {"x": x}, (x, -1, 2)) for x in range(5)]  # Ctrl-C while cell 2 runs
+    with pytest.raises(Interrupted, match="interrupted after 2 of 5 cells; .* run the same command again"):
+        run_cells(ctrl_c, _square_or_fail, jobs=1, cache_dir=tmp_path, progress=False)
+    assert len(list(tmp_path.glob("d*.json"))) == 2
+
+
+def test_classic_reuses_saved_cells_unless_the_file_changes_or_rerun(tmp_path, capsys, caplog):
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    seq = lowrank_sequence(30, 10, 2, seed=0)
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    out = tmp_path / "out"
+    argv = ["--root", str(tmp_path / "data"), "--methods", "rank3,csf2", "--long", "0", "--out", str(out),
+            "--no-progress"]
+    assert classic.main(argv) == 0
+    first = json.loads((out / "classic.json").read_text())
+    assert first["meta"]["cells_reused"] == 0 and len(list((out / "cells").glob("tiny-*.json"))) == 2
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert classic.main(argv) == 0
+    again = json.loads((out / "classic.json").read_text())
+    assert again["meta"]["cells_reused"] == 2 and again["rows"] == first["rows"]
+    assert "classic: reusing 2 of 2 cells" in caplog.text
+    assert "2 of 2 cells were reused from an earlier run" in (out / "classic.md").read_text()
+    assert classic.main(argv + ["--methods", "rank3,csf2,pr"]) == 0  # only the new method is solved
+    assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 2
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": 2 * seq.points_3d.transpose(2, 1, 0)})  # the file changes
+    assert classic.main(argv) == 0
+    assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 0
+    assert classic.main(argv + ["--rerun"]) == 0
+    assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 0
