@@ -42,7 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import Interrupted, code_hash, markdown_table, run_cells, run_metadata, write_csv, write_json
+from benchmarks.common import (add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata,
+                               write_csv, write_json)
 
 log = logging.getLogger("benchmarks.classic")
 
@@ -216,14 +217,6 @@ def job_identity(job: str) -> dict:
     return {"job": str(path.resolve()), "sha1": hashlib.sha1(path.read_bytes()).hexdigest()}
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--rerun`` and ``--no-progress``, shared by the benchmarks that save their cells (:func:`run_cells`)."""
-    parser.add_argument("--rerun", action="store_true",
-                        help="solve every cell again instead of reusing the results an earlier run saved under "
-                             "OUT/cells (by default an interrupted run resumes where it stopped)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-
-
 def main(argv: list[str] | None = None) -> int:
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers import available_solvers
@@ -259,15 +252,14 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out or f"runs/classic{'-missing' + str(args.missing) if args.missing else ''}")
     jobs = ([f"synthetic:{args.long}"] if args.long > 0 else []) + files  # the longest first
     code = code_hash(__file__)
+    identity = {j: job_identity(j) for j in jobs}  # a file's hash once, not once per method
     cells = [(f"{Path(j).stem if j.endswith('.mat') else j.replace(':', '-')}-{m}",
-              {**job_identity(j), "method": m, "missing": args.missing, "settings": args.settings, "code": code},
+              {**identity[j], "method": m, "missing": args.missing, "settings": args.settings, "code": code},
               (j, m, args.missing, args.settings)) for j in jobs for m in methods]
-    try:
-        rows, reused = run_cells(cells, solve_cell, jobs=args.jobs, cache_dir=out / "cells", rerun=args.rerun,
-                                 progress=not args.no_progress, desc="classic")
-    except Interrupted as exc:
-        print(exc, file=sys.stderr)
+    done = run_cells_from_args(args, cells, solve_cell, out, "classic")
+    if done is None:
         return 130
+    rows, reused = done
     per_seq = [rows[i:i + len(methods)] for i in range(0, len(rows), len(methods))]
     table, verdicts = [], []
     for rs in per_seq:

@@ -3,6 +3,7 @@ parallel runs of independent cells (:func:`run_cells`)."""
 
 from __future__ import annotations
 
+import argparse
 import csv
 import hashlib
 import io
@@ -80,15 +81,35 @@ def run_cells(cells: Sequence[tuple[str, dict[str, Any], tuple]], fn: Callable[.
         try:
             with tqdm(total=len(todo), desc=desc, unit="cell", disable=not progress, file=sys.stderr) as bar:
                 for i, result in run:
-                    result = json.loads(json.dumps(result, default=_plain))
-                    write_json(paths[i], result)
-                    results[i] = result
+                    text = json.dumps(result, indent=2, default=_plain)
+                    write_text_atomic(paths[i], text)
+                    results[i] = json.loads(text)  # the saved form, so a resumed run returns the same data
                     done += 1
                     bar.update()
         except KeyboardInterrupt:
             raise Interrupted(f"{desc}: interrupted after {done} of {len(todo)} cells; every finished cell is saved "
                               f"in {cache_dir}: run the same command again to resume") from None
     return results, reused
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--rerun`` and ``--no-progress``: the options of :func:`run_cells_from_args`."""
+    parser.add_argument("--rerun", action="store_true",
+                        help="solve every cell again instead of reusing the results an earlier run saved under "
+                             "OUT/cells (by default an interrupted run resumes where it stopped)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def run_cells_from_args(args: argparse.Namespace, cells: Sequence[tuple[str, dict[str, Any], tuple]],
+                        fn: Callable[..., Any], out: Path, desc: str) -> tuple[list, int] | None:
+    """:func:`run_cells` for a benchmark's command line (``args`` from :func:`add_run_arguments` plus ``--jobs``),
+    saving under ``out/cells``. On Ctrl-C it prints what was saved and returns None (exit status 130)."""
+    try:
+        return run_cells(cells, fn, jobs=args.jobs, cache_dir=out / "cells", rerun=args.rerun,
+                         progress=not args.no_progress, desc=desc)
+    except Interrupted as exc:
+        print(exc, file=sys.stderr)
+        return None
 
 
 def _plain(value: Any) -> Any:

@@ -23,9 +23,8 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import (Interrupted, code_hash, config_hash, markdown_table, run_cells, run_metadata, write_csv,
-                               write_json,
-                               write_text_atomic)
+from benchmarks.common import (add_run_arguments, code_hash, config_hash, markdown_table, run_cells_from_args,
+                               run_metadata, write_csv, write_json, write_text_atomic)
 
 log = logging.getLogger("benchmarks.pr_sweep")
 
@@ -60,8 +59,7 @@ def run_one(path: str, label: str, config: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import add_data_arguments, add_run_arguments, benchmark_sequences, job_identity, \
-        plot_results
+    from benchmarks.classic import add_data_arguments, benchmark_sequences, job_identity, plot_results
     from nrsfm.errors import NRSfMError
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.pr_sweep", description=__doc__.split("\n\n")[0])
@@ -79,14 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     log.info("pr_sweep: %d sequences x %d configurations, %d jobs", len(files), len(CONFIGS), args.jobs)
     out = Path(args.out)
     code = code_hash(__file__, Path(__file__).with_name("classic.py"))
-    cells = [(f"{Path(f).stem}-{config_hash({'label': label})}", {**job_identity(f), "config": cfg, "code": code},
+    identity = {f: job_identity(f) for f in files}
+    cells = [(f"{Path(f).stem}-{config_hash({'label': label})}", {**identity[f], "config": cfg, "code": code},
               (f, label, cfg)) for f in files for label, cfg in CONFIGS]
-    try:
-        rows, reused = run_cells(cells, run_one, jobs=args.jobs, cache_dir=out / "cells", rerun=args.rerun,
-                                 progress=not args.no_progress, desc="pr_sweep")
-    except Interrupted as exc:
-        print(exc, file=sys.stderr)
+    done = run_cells_from_args(args, cells, run_one, out, "pr_sweep")
+    if done is None:
         return 130
+    rows, reused = done
     names = [Path(f).stem for f in files]
     cell = {(r["sequence"], r["config"]): r for r in rows}
     table = []
