@@ -87,6 +87,33 @@ def test_pr_with_missing_points():
     assert e3d(rec.points_3d, seq.points_3d) < 5e-3
 
 
+def test_lowrank_fit_residual_finds_the_rank_with_missing_entries(rng):
+    from nrsfm.solvers.base import lowrank_fit_residual
+
+    # rank 6 plus a translation per row, nearly rigid (the last three singular values 1% of the first)
+    w = (rng.standard_normal((200, 6)) * [1, 1, 1, .01, .01, .01]) @ rng.standard_normal((6, 30))
+    w += rng.standard_normal((200, 1))
+    mask = np.repeat(rng.random((100, 30)) > 0.2, 2, axis=0)
+    assert lowrank_fit_residual(w, mask, 6) < 1e-6
+    assert lowrank_fit_residual(w, mask, 3) > 1e-3
+
+
+def test_auto_k_with_missing_points_matches_complete_tracks():
+    """Nearly rigid tracks (the face, rank 7) with 20% missing get the complete tracks' K, not the cap (8)."""
+    from nrsfm.datasets.synthetic import face_sequences
+    from nrsfm.solvers.csf2 import auto_k
+
+    complete = face_sequences(1, 60)[0]
+    seq = face_sequences(1, 60, missing=0.2)[0]
+    mask = np.repeat(seq.weights > 0, 2, axis=0)
+    assert auto_k(complete.measurement_matrix()) == auto_k(seq.measurement_matrix(), mask) == 4
+    noisy = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)  # full rank: the cap
+    assert auto_k(noisy.measurement_matrix(), np.repeat(noisy.weights > 0, 2, axis=0)) == 8
+    # PR imputes and starts with that K, not with CSF2's rule on the (full-rank) completion
+    rec = solve(seq, "pr", max_iter=1)
+    assert rec.info["init_K"] == 4 and rec.info["impute_rank"] == 12
+
+
 @pytest.mark.parametrize("case", ["rigid", "two_frames", "planar"])
 def test_pr_degenerate_inputs_never_nan(case, rng):
     if case == "rigid":

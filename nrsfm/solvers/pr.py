@@ -44,7 +44,7 @@ recorded in ``info["init"]``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -68,7 +68,8 @@ class PRParams:
         centre: regularise the aligned shapes minus their mean shape (default) or the aligned shapes.
         delta_rel: log-determinant offset relative to the largest singular value of the start.
         init: ``"csf2"`` (default: CSF2's reconstruction) or ``"rigid"`` (the rank-3 factorisation).
-        init_K: CSF2's K for the start (0: CSF2's automatic rule).
+        init_K: CSF2's K for the start (0: CSF2's automatic rule; with missing points the rule runs once on
+            the visible entries, not on the completion, whose W is never exactly low-rank).
         smoothing_start / smoothing_end: relative smoothing ``e / s_max`` of
             the nuclear norm at the first and last continuation stage.
         stages: continuation stages of the nuclear norm (geometric steps from start to end).
@@ -128,7 +129,12 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
         from nrsfm.solvers.csf2 import auto_k
 
         mask = np.repeat(visible, 2, axis=0)
-        w = impute_lowrank(w, mask, params.impute_rank or 3 * auto_k(w, mask))
+        if not (params.impute_rank and params.init_K):
+            # one K from the visible entries for both: CSF2's rule on the completion sees a full-rank W
+            k = auto_k(w, mask)
+            params = replace(params, impute_rank=params.impute_rank or 3 * k,
+                             init_K=params.init_K or k)
+        w = impute_lowrank(w, mask, params.impute_rank)
     p2 = w.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
     p2 = p2 - p2.mean(axis=1, keepdims=True)
     scale = np.sqrt((p2**2).sum() / n_frames)
@@ -188,7 +194,8 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
                           "larger delta_rel")
     return Reconstruction(points_3d=shapes, rotations=rotations, method="pr", iterations=iterations,
                           converged=converged, info={"evaluations": state["evals"], "final_cost": float(res.fun),
-                                                     "init": init_used})
+                                                     "init": init_used, "init_K": params.init_K,
+                                                     "impute_rank": params.impute_rank})
 
 
 def _start(p2: np.ndarray, params: PRParams) -> tuple[np.ndarray, str]:
