@@ -87,15 +87,18 @@ def test_pr_with_missing_points():
     assert e3d(rec.points_3d, seq.points_3d) < 5e-3
 
 
-def test_lowrank_fit_residual_finds_the_rank_with_missing_entries(rng):
-    from nrsfm.solvers.base import lowrank_fit_residual
+def test_lowrank_fit_finds_the_rank_with_missing_entries(rng):
+    from nrsfm.solvers.base import lowrank_fit
 
     # rank 6 plus a translation per row, nearly rigid (the last three singular values 1% of the first)
     w = (rng.standard_normal((200, 6)) * [1, 1, 1, .01, .01, .01]) @ rng.standard_normal((6, 30))
     w += rng.standard_normal((200, 1))
     mask = np.repeat(rng.random((100, 30)) > 0.2, 2, axis=0)
-    assert lowrank_fit_residual(w, mask, 6) < 1e-6
-    assert lowrank_fit_residual(w, mask, 3) > 1e-3
+    assert lowrank_fit(w, mask, 6)[0] < 1e-6
+    residual, factor = lowrank_fit(w, mask, 3)
+    assert residual > 1e-3 and factor.shape == (3, 30)
+    np.testing.assert_allclose(factor @ factor.T, np.eye(3), atol=1e-12)
+    assert lowrank_fit(w, mask, 6, start=factor)[0] < 1e-6  # warm-started from the rank-3 fit
 
 
 def test_auto_k_with_missing_points_matches_complete_tracks():
@@ -107,6 +110,9 @@ def test_auto_k_with_missing_points_matches_complete_tracks():
     seq = face_sequences(1, 60, missing=0.2)[0]
     mask = np.repeat(seq.weights > 0, 2, axis=0)
     assert auto_k(complete.measurement_matrix()) == auto_k(seq.measurement_matrix(), mask) == 4
+    rng = np.random.default_rng(0)  # exact rank 5, nearly rigid (like the shark): K = 3
+    w = (rng.standard_normal((400, 5)) * np.geomspace(1, 3e-3, 5)) @ rng.standard_normal((5, 50))
+    assert auto_k(w) == auto_k(w + rng.standard_normal((400, 1)), np.repeat(rng.random((200, 50)) > .25, 2, 0)) == 3
     noisy = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)  # full rank: the cap
     assert auto_k(noisy.measurement_matrix(), np.repeat(noisy.weights > 0, 2, axis=0)) == 8
     # PR imputes and starts with that K, not with CSF2's rule on the (full-rank) completion

@@ -203,44 +203,54 @@ def require_visible_points(seq: Sequence, method: str, minimum: int = 3) -> np.n
     return vis
 
 
-def lowrank_fit_residual(w: np.ndarray, mask: np.ndarray, rank: int, *, rel_tol: float = 1e-6,
-                         max_iter: int = 100) -> float:
-    """How well a rank-``rank`` matrix plus a per-row translation fits the visible entries of `(2F, P)` ``w``.
+def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray | None = None,
+                rel_tol: float = 1e-6, max_iter: int = 100) -> tuple[float, np.ndarray]:
+    """Fit a rank-``rank`` matrix plus a per-row translation to the visible entries of `(2F, P)` ``w``.
 
     Variable projection (Wiberg; Hong & Fitzgibbon, ICCV 2015): the `(rank, P)` column factor B is optimised by
     Levenberg-Marquardt with Kaufman's Gauss-Newton matrix, the row factors and translations eliminated in closed
-    form per frame. ``mask`` rows come in frame pairs (a missing point hides both of its rows). Hard imputation
-    (:func:`impute_lowrank`) gives the start. On nearly rigid tracks (the synthetic face, rank 7, 20% missing,
-    fitted at rank 9) this reaches 2e-6 of the RMS in 27 iterations, where alternating least squares stalls at
-    .0044 and hard imputation leaves a next singular value of .0061 of the largest after 200 sweeps.
+    form per frame. ``mask`` rows come in frame pairs (a missing point hides both of its rows). The start is
+    ``start`` `(r0, P)`, r0 < ``rank`` (a lower-rank fit's factor), completed by the leading directions of the
+    rank-``rank`` hard imputation (:func:`impute_lowrank`) outside it; or that imputation alone. On nearly rigid
+    tracks (the synthetic face, rank 7, 20% missing, fitted at rank 9) this reaches 2e-6 of the RMS in 27
+    iterations, where alternating least squares stalls at .0044 and hard imputation leaves a next singular value
+    of .0061 of the largest after 200 sweeps. It has local minima too (the shark, exact rank 5, at rank 6 from the
+    imputation: .0041), which fitting every rank in turn avoids (:func:`nrsfm.solvers.csf2.auto_k`).
 
     Returns:
-        The RMS residual on the visible entries over the RMS of the visible entries, each row centred on its
-        visible mean. The search stops once it falls below ``rel_tol``, when ten iterations gain less than 0.1%
-        (a local minimum above it), or after ``max_iter`` iterations.
+        The RMS residual on the visible entries over the RMS of the visible entries (each row centred on its
+        visible mean), and B `(rank, P)` with orthonormal rows. The search stops once the residual falls below
+        ``rel_tol``, when ten iterations gain less than a relative 1e-6, or after ``max_iter`` iterations.
     """
     n_points = w.shape[1]
+    ones = np.ones((1, n_points))
     # a frame with at most rank + 1 visible points fits any column factor: it says nothing
     keep = np.repeat(mask[0::2].sum(axis=1) > rank + 1, 2)
     w, mask = w[keep], mask[keep]
-    if not len(w):
-        return 0.0
+    filled = impute_lowrank(w, mask, rank, iters=10) if len(w) else np.zeros((rank + 1, n_points))
+    centred = filled - filled.mean(axis=1, keepdims=True)
+    if start is None or not len(start):
+        b = np.linalg.svd(centred, full_matrices=False)[2][:rank]  # (r, P)
+    else:
+        known = np.linalg.qr(np.vstack([start, ones]).T)[0]  # (P, r0+1)
+        extra = np.linalg.svd(centred - (centred @ known) @ known.T, full_matrices=False)[2][: rank - len(start)]
+        b = np.linalg.qr(np.vstack([start, extra]).T)[0].T
     vis = mask[0::2].astype(float)  # (F, P)
     wz = np.where(mask, w, 0.0).reshape(-1, 2, n_points)  # (F, 2, P)
-    n_vis = float(mask.sum())
+    n_vis = max(float(mask.sum()), 1.0)
     mean = wz.sum(axis=2, keepdims=True) / np.maximum(vis.sum(axis=1), 1)[:, None, None]
     scale = np.sqrt((((wz - mean) * vis[:, None]) ** 2).sum() / n_vis)
     if scale == 0:
-        return 0.0
-    filled = impute_lowrank(w, mask, rank, iters=10)
-    b = np.linalg.svd(filled - filled.mean(axis=1, keepdims=True), full_matrices=False)[2][:rank]  # (r, P)
-    ones = np.ones((1, n_points))
+        return 0.0, b
 
     def evaluate(b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         bt = np.vstack([b, ones])  # (r+1, P), the last row carries the translation
         bd = bt[None] * vis[:, None]  # (F, r+1, P)
         gram = bd @ bt.T  # (F, r+1, r+1)
-        a = np.linalg.solve(gram, bd @ wz.transpose(0, 2, 1))  # (F, r+1, 2)
+        try:
+            a = np.linalg.solve(gram, bd @ wz.transpose(0, 2, 1))  # (F, r+1, 2)
+        except np.linalg.LinAlgError:  # B's rows and the ones are dependent on some frame's visible points
+            return np.inf, None, None, None, None
         e = wz - (a.transpose(0, 2, 1) @ bt) * vis[:, None]  # (F, 2, P)
         return 0.5 * float((e**2).sum()), a, e, bd, gram
 
@@ -248,6 +258,8 @@ def lowrank_fit_residual(w: np.ndarray, mask: np.ndarray, rank: int, *, rel_tol:
         return float(np.sqrt(2 * cost / n_vis) / scale)
 
     cost, a, e, bd, gram = evaluate(b)
+    if not np.isfinite(cost):
+        return np.inf, b
     history = [relative(cost)]
     damping = 1e-4
     eye = np.eye(n_points)
@@ -266,15 +278,16 @@ def lowrank_fit_residual(w: np.ndarray, mask: np.ndarray, rank: int, *, rel_tol:
             step = np.linalg.solve(jtj + damping * np.diag(diag), -grad.ravel()).reshape(rank, n_points)
             trial = evaluate(b + step)
             if trial[0] < cost:
-                b = np.linalg.qr((b + step).T)[0].T  # the same column space, orthonormal rows
-                cost, a, e, bd, gram = evaluate(b)
+                orthonormal = np.linalg.qr((b + step).T)[0].T  # the same row space, orthonormal rows
+                again = evaluate(orthonormal)
+                b, (cost, a, e, bd, gram) = (orthonormal, again) if np.isfinite(again[0]) else (b + step, trial)
                 damping = max(damping / 10, 1e-12)
                 break
             damping *= 10
         history.append(relative(cost))
-        if damping >= 1e10 or (len(history) > 10 and history[-11] - history[-1] < 1e-3 * history[-11]):
+        if damping >= 1e10 or (len(history) > 10 and history[-11] - history[-1] < 1e-6 * history[-11]):
             break
-    return history[-1]
+    return history[-1], b
 
 
 def impute_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, iters: int = 200, tol: float = 1e-9) -> np.ndarray:

@@ -42,9 +42,9 @@ Automatic K and d (``K=0``/``d=0``; the authors always set them by hand):
 K = min(8, ceil(r / 3) + 1) with r the numerical rank of the centred W (so an
 exactly low-rank W gets one basis shape more than it strictly needs: the
 shark's rank-5 W needs K = 3, and K = 2 fails), capped by 3K <= min(2F, P);
-with missing points from the lowest multiple of 3 whose rank fit (variable
-projection) leaves less than 1e-6 of the visible entries' RMS (:func:`auto_k`:
-on the CMU files and the stand-ins, the complete tracks' K);
+with missing points r is the lowest rank whose fit to the visible entries
+(variable projection) leaves less than 1e-6 of their RMS (:func:`auto_k`: on
+the CMU files and the stand-ins, the complete tracks' K);
 d = ceil(0.1 F) (the authors' demos), at least K + 1. No rule we tried picks
 the best K from W alone (the 2D fit, a held-out-frame fit and singular-value
 energy all keep improving with K while the depth gets worse). The settings
@@ -64,7 +64,7 @@ from scipy.linalg import cho_factor, cho_solve
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import (Reconstruction, impute_lowrank, lowrank_fit_residual, register,
+from nrsfm.solvers.base import (Reconstruction, impute_lowrank, lowrank_fit, register,
                                 require_visible_points)
 
 
@@ -140,22 +140,27 @@ def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
 
 
 def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
-           max_frames: int = 300) -> int:
+           max_frames: int = 300, max_points: int = 60) -> int:
     """CSF2's automatic K for a `(2F, P)` W: ``min(k_max, ceil(r / 3) + 1)`` with ``r`` the numerical rank of the
     centred W (singular values above ``rel_tol`` times the largest), and 3K <= min(2F, P).
 
-    With missing entries (``mask`` False) the rank comes from fits to the visible entries: K = k + 1 for the
-    smallest k whose rank-3k fit (:func:`~nrsfm.solvers.base.lowrank_fit_residual`) leaves less than ``rel_tol``
-    of the RMS, so that r lies in (3k - 3, 3k] as with complete tracks; the cap when none up to
-    3 (cap - 2) does. The test uses at most ``max_frames`` evenly spaced frames (an exactly low-rank W stays so).
+    With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries
+    (:func:`~nrsfm.solvers.base.lowrank_fit`) leaves less than ``rel_tol`` of their RMS, each fit started from
+    the one a rank below; the cap when none up to 3 (cap - 2) does. The fits use at most ``max_frames`` evenly
+    spaced frames and ``max_points`` points (an exactly low-rank W stays so; the Gauss-Newton matrix has
+    ``(r P)^2`` entries).
     """
     cap = max(1, min(k_max, min(w.shape) // 3))
     if mask is not None and not mask.all():
         frames = np.unique(np.linspace(0, w.shape[0] // 2 - 1, max_frames).round().astype(int))
         rows = np.stack([2 * frames, 2 * frames + 1], axis=1).ravel()
-        for k in range(1, cap - 1):
-            if lowrank_fit_residual(w[rows], mask[rows], 3 * k, rel_tol=rel_tol) < rel_tol:
-                return k + 1
+        cols = np.unique(np.linspace(0, w.shape[1] - 1, max_points).round().astype(int))
+        sub_w, sub_mask = w[np.ix_(rows, cols)], mask[np.ix_(rows, cols)]
+        factor = None
+        for rank in range(1, 3 * (cap - 2) + 1):
+            residual, factor = lowrank_fit(sub_w, sub_mask, rank, start=factor, rel_tol=rel_tol)
+            if residual < rel_tol:
+                return max(1, min(cap, -(-rank // 3) + 1))
         return cap
     s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
     rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
