@@ -227,7 +227,9 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
     # a frame with at most rank + 1 visible points fits any column factor: it says nothing
     keep = np.repeat(mask[0::2].sum(axis=1) > rank + 1, 2)
     w, mask = w[keep], mask[keep]
-    filled = impute_lowrank(w, mask, rank, iters=10) if len(w) else np.zeros((rank + 1, n_points))
+    if not len(w):
+        return 0.0, np.eye(rank, n_points)
+    filled = impute_lowrank(w, mask, rank, iters=10)
     centred = filled - filled.mean(axis=1, keepdims=True)
     if start is None or not len(start):
         b = np.linalg.svd(centred, full_matrices=False)[2][:rank]  # (r, P)
@@ -237,7 +239,7 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
         b = np.linalg.qr(np.vstack([start, extra]).T)[0].T
     vis = mask[0::2].astype(float)  # (F, P)
     wz = np.where(mask, w, 0.0).reshape(-1, 2, n_points)  # (F, 2, P)
-    n_vis = max(float(mask.sum()), 1.0)
+    n_vis = float(mask.sum())
     mean = wz.sum(axis=2, keepdims=True) / np.maximum(vis.sum(axis=1), 1)[:, None, None]
     scale = np.sqrt((((wz - mean) * vis[:, None]) ** 2).sum() / n_vis)
     if scale == 0:

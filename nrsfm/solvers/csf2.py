@@ -160,10 +160,12 @@ def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_to
         for rank in range(1, 3 * (cap - 2) + 1):
             residual, factor = lowrank_fit(sub_w, sub_mask, rank, start=factor, rel_tol=rel_tol)
             if residual < rel_tol:
-                return max(1, min(cap, -(-rank // 3) + 1))
-        return cap
-    s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
-    rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
+                break
+        else:
+            return cap
+    else:
+        s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
+        rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
     return max(1, min(cap, -(-rank // 3) + 1))
 
 
