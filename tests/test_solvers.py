@@ -199,6 +199,17 @@ def test_csf2_in_pixel_units_and_with_the_automatic_k():
     assert rec.converged and e3d(rec.points_3d, pixels.points_3d) < 1e-3
 
 
+def test_csf2_second_shape_start_rescues_a_short_nearly_rigid_face():
+    from nrsfm.datasets.synthetic import face_sequences
+
+    seq = face_sequences(3, 150)[2]  # exact cameras from step 1; X = I stops in a poor minimum of the shape step
+    authors = solve(seq, "csf2", residual_start=False)
+    rec = solve(seq, "csf2")
+    assert authors.info["shape_start"] == "identity" and e3d(authors.points_3d, seq.points_3d) > 0.5
+    assert rec.info["shape_start"] == "residual" and rec.info["rmse"] < 0.9 * authors.info["rmse"]
+    assert e3d(rec.points_3d, seq.points_3d) < 0.01
+
+
 def test_csf2_gauss_newton_decreases_the_column_space_cost_to_zero_on_exact_data():
     from nrsfm.solvers.csf2 import camera_rows, fit_shape_gn
 
@@ -258,6 +269,8 @@ def test_csf2_camera_refinement_recovers_cameras_from_visible_entries():
 def test_csf2_refuses_too_large_k():
     with pytest.raises(SolverError, match="3K <= min"):
         solve(lowrank_sequence(10, 8, 1, seed=0), "csf2", K=4)
+    with pytest.raises(SolverError, match="d >= K"):  # X (d, K) has orthonormal columns
+        solve(lowrank_sequence(40, 30, 2, seed=0), "csf2", K=6, d=5)
 
 
 # ------------------------------------------------------------------ SPM
