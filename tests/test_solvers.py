@@ -230,6 +230,24 @@ def test_csf2_occlusion_aware_and_auto_rank():
     assert e3d(rec.points_3d, seq.points_3d) < 0.02
 
 
+def test_csf2_occlusion_rounds_return_their_lowest_rmse_round(monkeypatch):
+    from nrsfm.datasets.synthetic import face_sequences
+    from nrsfm.solvers import csf2
+
+    seen, refine = [], csf2._refine_masked
+
+    def recording(*args):
+        out = refine(*args)
+        seen.append(out[2])
+        return out
+
+    monkeypatch.setattr(csf2, "_refine_masked", recording)
+    rec = solve(face_sequences(4, 150, missing=0.2)[3], "csf2", round_iter_alt=0)
+    rounds = seen[1:]  # the first call is the refinement before the rounds
+    assert len(rounds) > 10 and rounds[-1] > min(rounds)  # the RMSE rose again before the rounds stopped
+    assert rec.info["rmse"] == min(rounds)
+
+
 def test_csf2_dct_basis_is_orthonormal():
     from nrsfm.solvers.csf2 import dct_basis
 

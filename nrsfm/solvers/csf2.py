@@ -39,7 +39,9 @@ X-step's normal matrix comes from 2d - 1 cosine sums, :func:`dct_weighted_gram`)
 The cameras of the completed W inherit the completion's errors (pickup with
 20% missing: e3D .45 against .026 complete), so up to ``camera_rounds`` (200)
 rounds follow: every frame's rotation and translation by Gauss-Newton on its
-visible entries (:func:`_refine_cameras`), then ``round_iter`` X/S iterations.
+visible entries (:func:`_refine_cameras`), then ``round_iter`` X/S iterations;
+each run returns its round of lowest visible-entry RMSE (the ridge on S lets
+the RMSE rise again before the rounds stop).
 The rounds run twice from the same start (``round_iter`` 20 and
 ``round_iter_alt`` 5) and the lower visible-entry RMSE wins: the two land in
 different minima, and the better fit is the better reconstruction on both
@@ -474,19 +476,21 @@ def _occlusion_rounds(w: np.ndarray, mask: np.ndarray, omega: np.ndarray, rot: n
                       x: np.ndarray, basis: np.ndarray, n_rounds: int, n_als: int, ridge: float):
     """Up to ``n_rounds`` of (cameras and translations by Gauss-Newton, then ``n_als`` X/S iterations) on the
     visible entries; stops when ten rounds improve the RMSE by less than 1e-4 (relative).
-    Returns rot `(F, 3, 3)`, X, S and the RMSE."""
+    Returns the round with the lowest RMSE (the ridge on S lets it rise again): rot `(F, 3, 3)`, X, S, RMSE."""
     n_frames = rot.shape[0]
     best = np.inf
-    rmse = np.inf
+    lowest = (rot, x, basis, np.inf)
     for r in range(1, n_rounds + 1):
         shapes = np.einsum("fk,kjp->fjp", omega @ x, basis)  # (F, 3, P)
         rot, t = _refine_cameras(w, mask, rot, shapes, t)
         x, basis, rmse = _refine_masked(w - t.reshape(2 * n_frames, 1), mask, rot[:, :2], omega, x, n_als, ridge)
+        if rmse < lowest[3]:
+            lowest = (rot, x, basis, rmse)
         if r % 10 == 0:
             if rmse > (1 - 1e-4) * best:
                 break
             best = rmse
-    return rot, x, basis, rmse
+    return lowest
 
 
 def _refine_cameras(w: np.ndarray, mask: np.ndarray, rot: np.ndarray, shapes: np.ndarray, t: np.ndarray,
