@@ -381,20 +381,20 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
         raise SolverError(f"csf2: K = {k} needs 3K <= min(2F, P) = {min(2 * n_frames, n_points)}; pass a smaller "
                           "K (--set K=...)")
     d = min(params.d or max(int(np.ceil(0.1 * n_frames)), k + 1), n_frames)
-    if d < k:
+    if d < k:  # only a user's d can be: the rule gives d >= K + 1 (3K <= 2F leaves enough frames)
         raise SolverError(f"csf2: d = {d} DCT vectors cannot hold K = {k} orthonormal coefficient columns; pass "
-                          f"d >= K (--set d={k}) or a smaller K" + (f" (the sequence has only {n_frames} frames)"
-                                                                      if d == n_frames else ""))
+                          f"d >= K (--set d={k}) or a smaller K")
     full = w if complete else impute_lowrank(w, mask, 3 * k)
     t = full.mean(axis=1, keepdims=True)  # (2F, 1) translations
+    wc = full - t  # (2F, P)
     omega = dct_basis(n_frames, d)  # (F, d)
-    rows, cam_residual, cam_cols = camera_rows(full - t, params.energy)
-    x, basis, it, converged, rmse = fit_shape_gn(full - t, rows, k, d, max_iter=params.max_iter, tol=params.tol,
+    rows, cam_residual, cam_cols = camera_rows(wc, params.energy)
+    x, basis, it, converged, rmse = fit_shape_gn(wc, rows, k, d, max_iter=params.max_iter, tol=params.tol,
                                                  omega=omega)
     shape_start = "identity"
     if params.residual_start and k > 1:
-        alt = fit_shape_gn(full - t, rows, k, d, max_iter=params.max_iter, tol=params.tol, omega=omega,
-                           x0=residual_start(full - t, rows, omega, k))
+        alt = fit_shape_gn(wc, rows, k, d, max_iter=params.max_iter, tol=params.tol, omega=omega,
+                           x0=residual_start(wc, rows, omega, k))
         if alt[4] < (1 - params.start_margin) * rmse:
             (x, basis, it, converged, rmse), shape_start = alt, "residual"
     rot = complete_rotation(rows)
