@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nrsfm.device import pick_device
 from nrsfm.errors import NRSfMError, ValidationError
 from prn.data import TrainingSet
 from prn.loss import PRLossParts, pr_loss
@@ -85,13 +86,6 @@ class TrainConfig:
     def lr_at(self, iteration: int) -> float:
         local = iteration if iteration < self.phase_boundary else iteration - self.phase_boundary
         return self.lr * self.lr_decay ** (local // self.lr_step)
-
-
-def pick_device(name: str = "auto") -> torch.device:
-    """``auto``: CUDA when available, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def _freeze_bn_stats(model: torch.nn.Module) -> None:

@@ -65,6 +65,8 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys):
     _one_line_error(*_run(capsys, "info", str(notzip))[::2], "expected an .npz archive")
     missing = lowrank_sequence(10, 6, 1, missing=0.3, seed=2).save(tmp_path / "missing.npz")
     _one_line_error(*_run(capsys, "solve", str(missing))[::2], "expected complete tracks")
+    _one_line_error(*_run(capsys, "solve", str(good), "--method", "empnd", "--set", "device=cuda:99")[::2],
+                    "device: 'cuda:99' asked for, but torch sees")
 
 
 def test_outputs_are_never_overwritten_without_force(tmp_path, capsys):

@@ -381,6 +381,40 @@ def test_empnd_with_missing_points_and_degenerate_frames():
     assert np.isfinite(two.points_3d).all()
 
 
+def test_pick_device_refuses_unknown_names_and_absent_gpus():
+    import torch
+
+    from nrsfm.device import pick_device
+
+    assert pick_device("cpu").type == "cpu"
+    assert pick_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValidationError, match="expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'tpu'"):
+        pick_device("tpu")
+    with pytest.raises(ValidationError, match="expected 'auto', 'cpu'"):
+        pick_device("meta")
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ValidationError, match="asked for, but torch sees"):
+        pick_device(f"cuda:{count}" if count else "cuda")
+    with pytest.raises(ValidationError, match="asked for, but torch sees"):  # refused before any work
+        params_from_strings(get_solver("empnd").params, [f"device=cuda:{count}" if count else "device=cuda"])
+
+
+def test_empnd_runs_where_it_is_asked_and_says_so():
+    import torch
+
+    seq = lowrank_sequence(60, 12, 2, seed=4, missing=0.1)
+    cpu = solve(seq, "empnd", device="cpu", max_iter=15)
+    assert cpu.info["device"] == "cpu" and cpu.info["start_s"] > 0
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU here: the GPU half of this test needs one")
+    for complete in (False, True):  # DensePosterior and CompletePosterior
+        s = seq.replace(visibility=np.ones_like(seq.weights)) if complete else seq
+        a = solve(s, "empnd", device="cpu", max_iter=15)
+        b = solve(s, "empnd", device="cuda", max_iter=15)
+        assert b.info["device"].startswith("cuda") and b.iterations == a.iterations
+        np.testing.assert_allclose(b.points_3d, a.points_3d, atol=1e-6 * np.abs(a.points_3d).max())
+
+
 def test_factorisation_start_is_exact_on_a_rigid_object_and_keeps_the_tracks():
     from nrsfm.solvers.rectify import factor_rotations, factorisation_start
 

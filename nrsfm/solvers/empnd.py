@@ -75,11 +75,13 @@ algebra in float64. Drink (1102 x 41, 132 iterations, CSF2 start included):
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from nrsfm.device import pick_device
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.procrustes import proper_procrustes, skew
 from nrsfm.sequence import Sequence
@@ -119,6 +121,9 @@ class EMPNDParams:
         fast: use :class:`CompletePosterior` when every point is visible
             (same result; drink 43 s against 61 s on 2 cores); False forces
             :class:`DensePosterior`.
+        device: where EM's tensor algebra runs (:func:`nrsfm.device.pick_device`): ``"auto"``
+            (default) a CUDA GPU when torch sees one, else the CPU; ``"cpu"``, ``"cuda"``,
+            ``"cuda:N"``. The start (CSF2, the factorisation) runs on the CPU either way.
     """
 
     max_iter: int = 1000
@@ -130,6 +135,7 @@ class EMPNDParams:
     init_K: int = 0
     probe_iter: int = -1
     fast: bool = True
+    device: str = "auto"
 
     def __post_init__(self) -> None:
         if self.init not in INITS:
@@ -140,6 +146,7 @@ class EMPNDParams:
             raise ValidationError("EMPNDParams: expected max_iter >= 1, tol >= 0, var_init >= 0, var_drop >= 1, "
                                   f"c_init > 0, got {self.max_iter}, {self.tol}, {self.var_init}, {self.var_drop}, "
                                   f"{self.c_init}")
+        pick_device(self.device)  # a device this machine lacks is refused here, before any work
 
 
 def centring_basis(n_points: int) -> np.ndarray:
@@ -150,7 +157,7 @@ def centring_basis(n_points: int) -> np.ndarray:
 
 def constrained_directions(mean: torch.Tensor) -> torch.Tensor:
     """`(3q, 4)` orthonormal basis of ``M`` and its infinitesimal rotations ``[e_k]_x M`` for `(3, q)` ``M``."""
-    rotated = skew(torch.eye(3, dtype=mean.dtype)) @ mean  # (3, 3, q)
+    rotated = skew(torch.eye(3, dtype=mean.dtype, device=mean.device)) @ mean  # (3, 3, q)
     basis, _ = torch.linalg.qr(torch.cat([mean.reshape(1, -1), rotated.reshape(3, -1)]).T)
     return basis
 
@@ -254,7 +261,7 @@ class CompletePosterior:
         # U^T Inner^-1 U = S + S M^-1 S where S = Psi^T Phi = I/c - M (Phi has orthonormal columns), so
         # tr Inner^-1 - tr U^T Inner^-1 U = sum g + |L^-1 Psi^T|^2 + q/c - tr(M^-1)/c^2
         z = torch.linalg.solve_triangular(chol, psi_t, upper=False)  # (F, q, dim) = L^-1 Psi^T
-        eye_q = torch.eye(q, dtype=_DT).expand(n, q, q)
+        eye_q = torch.eye(q, dtype=_DT, device=chol.device).expand(n, q, q)
         tr_m_inv = (torch.linalg.solve_triangular(chol, eye_q, upper=False) ** 2).sum(dim=(1, 2))
         per_frame = g.sum(dim=1) + (z**2).sum(dim=(1, 2)) + q / c - tr_m_inv / c**2
         self.trace = float((per_frame / s**2).sum())
@@ -289,7 +296,7 @@ def pnd_cost(mean: torch.Tensor, mu: torch.Tensor, moment):
     sr, s = align(mu, mean)
     a = moment(sr)
     nb = constrained_directions(mean)
-    proj = torch.eye(3 * q, dtype=_DT) - nb @ nb.T
+    proj = torch.eye(3 * q, dtype=_DT, device=mean.device) - nb @ nb.T
     b = proj @ a @ proj
     # a variance floor (1e-9 x the mean variance, and 1e-12 for shapes of norm ~1): on exactly low-rank data
     # (the shark) or a rigid sequence A is singular
@@ -334,13 +341,14 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     n_obs = 2.0 * (count - 1).sum()
     complete = bool(vis.all()) and params.fast
 
-    d_t = torch.from_numpy(data)
-    obs_t = torch.from_numpy(obs)
+    device = pick_device(params.device)
+    d_t = torch.from_numpy(data).to(device)
+    obs_t = torch.from_numpy(obs).to(device)
 
     def begin(start: np.ndarray) -> dict:
         """EM state from `(F, P, 3)` camera-frame starting shapes (generalised Procrustes, sample covariance)."""
         x0 = np.einsum("pa,fpj->fja", basis, start - start.mean(axis=1, keepdims=True)) / unit
-        mu = torch.from_numpy(x0)
+        mu = torch.from_numpy(x0).to(device)
         mean = (mu / mu.reshape(n, -1).norm(dim=1)[:, None, None]).mean(dim=0)
         mean = mean / mean.norm()
         for _ in range(200):
@@ -354,9 +362,9 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
         sr, s = align(mu, mean)
         y = (sr @ mu).reshape(n, dim)
         nb = constrained_directions(mean)
-        full, _ = torch.linalg.qr(torch.cat([nb, torch.eye(dim, dtype=_DT)], dim=1))
+        full, _ = torch.linalg.qr(torch.cat([nb, torch.eye(dim, dtype=_DT, device=device)], dim=1))
         qb = full[:, 4:dim]  # (dim, cdim)
-        cp = params.c_init * torch.eye(cdim, dtype=_DT) + qb.T @ (y.T @ y / n) @ qb
+        cp = params.c_init * torch.eye(cdim, dtype=_DT, device=device) + qb.T @ (y.T @ y / n) @ qb
         fit = torch.zeros_like(mu)
         fit[:, :2] = mu[:, :2] @ obs_t
         var = params.var_init or max(float(((d_t - fit) ** 2).sum()) / n_obs, 1e-14)
@@ -405,6 +413,15 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
         st.update(mu=mu, mean=mean, sr=sr, s=s, lam=lam, var=var, step=step, cost=cost)
         return st
 
+    start_s = 0.0
+
+    def timed_start(kind: str) -> np.ndarray:
+        nonlocal start_s
+        t0 = time.perf_counter()
+        shapes = _start_shapes(seq, params, kind)
+        start_s += time.perf_counter() - t0
+        return shapes
+
     kind = _init_kind(seq, params)
     probe_iter = params.probe_iter
     if probe_iter < 0:
@@ -412,23 +429,24 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     probe_iter = min(probe_iter, params.max_iter)
     if params.init == "auto" and kind == "factorisation" and probe_iter > 0 and fits_csf2(n, p):
         # both starts for probe_iter iterations; the lower PND cost goes on
-        probes = [iterate(begin(_start_shapes(seq, params, k)), probe_iter) for k in ("factorisation", "csf2")]
+        probes = [iterate(begin(timed_start(k)), probe_iter) for k in ("factorisation", "csf2")]
         best = min(range(2), key=lambda i: probes[i]["cost"])
         kind = ("factorisation", "csf2")[best]
         st = probes[best]
         st["probe_costs"] = [p["cost"] for p in probes]
     else:
-        st = begin(_start_shapes(seq, params, kind))
+        st = begin(timed_start(kind))
     if not st["converged"]:
         st = iterate(st, params.max_iter - st["it"])
     mu, sr, s, var, cost, it = st["mu"], st["sr"], st["s"], st["var"], st["cost"], st["it"]
     converged, history = st["converged"], st["history"]
 
-    points = np.einsum("pa,fja->fpj", basis, mu.numpy()) * unit  # (F, P, 3) camera frame
-    rot = (sr / s[:, None, None]).numpy().transpose(0, 2, 1)  # camera <- aligned object frame
+    points = np.einsum("pa,fja->fpj", basis, mu.cpu().numpy()) * unit  # (F, P, 3) camera frame
+    rot = (sr / s[:, None, None]).cpu().numpy().transpose(0, 2, 1)  # camera <- aligned object frame
     return Reconstruction(points_3d=points, rotations=rot, method="empnd", iterations=it, converged=converged,
                           info={"noise_std": float(np.sqrt(var)) * unit, "cost": cost, "init": kind,
-                                "cost_history": history, "probe_costs": st.get("probe_costs")})
+                                "cost_history": history, "probe_costs": st.get("probe_costs"),
+                                "device": str(device), "start_s": start_s})
 
 
 #: Iterations of each start on noise-free tracks (``probe_iter = -1``). After 20 iterations the PND cost of

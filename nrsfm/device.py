@@ -1,0 +1,33 @@
+"""Which torch device a computation runs on: one rule for the solvers and the networks."""
+
+from __future__ import annotations
+
+from nrsfm.errors import ValidationError
+
+
+def pick_device(name: str = "auto"):
+    """The ``torch.device`` for ``name``: ``"auto"`` is CUDA when torch sees a GPU, else the CPU; ``"cpu"``,
+    ``"cuda"`` and ``"cuda:N"`` are taken as given.
+
+    Raises:
+        ValidationError: ``name`` is no device torch knows, or names a GPU this machine does not have.
+    """
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as exc:
+        raise ValidationError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}") from exc
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValidationError(f"device: {name!r} asked for, but torch sees no CUDA GPU on this machine; "
+                                  "use device=cpu or device=auto")
+        if device.index is not None and device.index >= count:
+            raise ValidationError(f"device: {name!r} asked for, but torch sees {count} CUDA GPU(s) "
+                                  f"(cuda:0..cuda:{count - 1})")
+    elif device.type != "cpu":
+        raise ValidationError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}")
+    return device
