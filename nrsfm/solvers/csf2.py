@@ -70,6 +70,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from threadpoolctl import threadpool_limits
 
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
@@ -399,16 +400,19 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
             (x, basis, it, converged, rmse), shape_start = alt, "residual"
     rot = complete_rotation(rows)
     if not complete:
-        x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
-        if params.camera_rounds:
-            # alternate: cameras and translations on the visible entries, then X and S again (the camera upgrade
-            # above saw the imputed entries, whose errors it inherits); from the same start with round_iter and
-            # round_iter_alt X/S iterations per round, keeping the lower visible-entry RMSE
-            scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
-            start = (rot, t.reshape(n_frames, 2), x, basis * scale)
-            runs = [_occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge)
-                    for n_als in dict.fromkeys((params.round_iter, params.round_iter_alt)) if n_als > 0]
-            rot, x, basis, rmse = min(runs, key=lambda run: run[3])
+        # many small products and solves per iteration: BLAS threads cost more than they give here (20% missing,
+        # 1102 x 41: 102 s with two threads, 53 s with one; 1 thread when the whole solve is limited: 56 s)
+        with threadpool_limits(limits=1, user_api="blas"):
+            x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
+            if params.camera_rounds:
+                # alternate: cameras and translations on the visible entries, then X and S again (the camera
+                # upgrade above saw the imputed entries, whose errors it inherits); from the same start with
+                # round_iter and round_iter_alt X/S iterations per round, keeping the lower visible-entry RMSE
+                scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
+                start = (rot, t.reshape(n_frames, 2), x, basis * scale)
+                runs = [_occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge)
+                        for n_als in dict.fromkeys((params.round_iter, params.round_iter_alt)) if n_als > 0]
+                rot, x, basis, rmse = min(runs, key=lambda run: run[3])
     shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame
     points = np.einsum("fij,fpj->fpi", rot, shapes_obj)
     points -= points.mean(axis=1, keepdims=True)
