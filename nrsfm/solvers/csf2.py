@@ -400,8 +400,8 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
             (x, basis, it, converged, rmse), shape_start = alt, "residual"
     rot = complete_rotation(rows)
     if not complete:
-        # many small products and solves per iteration: BLAS threads cost more than they give here (20% missing,
-        # 1102 x 41: 102 s with two threads, 53 s with one; 1 thread when the whole solve is limited: 56 s)
+        # many small products and solves per iteration: BLAS threads cost more than they give here (1102 x 41,
+        # 20% missing, 2 cores: 102 s with two BLAS threads, 53 s with this limit; drink 330 s -> 168 s)
         with threadpool_limits(limits=1, user_api="blas"):
             x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
             if params.camera_rounds:

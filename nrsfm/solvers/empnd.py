@@ -69,8 +69,10 @@ Where we differ from the authors' code, and why:
 Cost: with missing points ``O(F (3P)^3)`` per iteration (one Cholesky
 factorisation and inverse per frame, :class:`DensePosterior`); with complete
 tracks ``O(F P^3)`` (:class:`CompletePosterior`). All of it is batched tensor
-algebra in float64. Drink (1102 x 41, 132 iterations, CSF2 start included):
-48 s on two cores, 76 s on one.
+algebra in float64, on a GPU when torch sees one (``device``). Drink (1102 x
+41, 132 iterations, the start included): 26.6 s on two cores, 47.2 s on one
+(session 13). A drink-sized synthetic sequence's EM: 24.5 s on two cores,
+1.9 s on an H100 (``benchmarks.speed_empnd``; ``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
