@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-
 from nrsfm.errors import ValidationError
 
 
@@ -34,20 +32,3 @@ def pick_device(name: str = "auto"):
         raise ValidationError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}")
     return device
 
-
-@contextmanager
-def torch_threads(n: int):
-    """Run the block with at most ``n`` torch intra-op CPU threads (restored afterwards).
-
-    For work made of many small batched operations (3x3 SVDs of every frame, small solves): there torch's
-    threads cost more than they give (per-sequence PR on drink, two cores: 21.1 s with two threads, 14.5 s with
-    one; ``benchmarks/RESULTS.md``).
-    """
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, min(n, before)))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)

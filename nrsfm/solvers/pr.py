@@ -48,7 +48,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from nrsfm.device import torch_threads
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
@@ -180,15 +179,14 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     v = x0
     iterations = 0
     converged = True
-    with torch_threads(1):  # batched 3x3 SVDs and small solves: one thread is faster (drink 21.1 s -> 14.5 s)
-        for offset in offsets:
-            res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
-                                          options={"maxiter": params.max_iter, "ftol": params.tol, "gtol": 1e-12})
-            v = res.x
-            iterations += int(res.nit)
-            converged = bool(res.success)
-        shapes = unpack(v)
-        al = align(torch.as_tensor(shapes.transpose(0, 2, 1)[None]), init=state["rot"])
+    for offset in offsets:
+        res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
+                                      options={"maxiter": params.max_iter, "ftol": params.tol, "gtol": 1e-12})
+        v = res.x
+        iterations += int(res.nit)
+        converged = bool(res.success)
+    shapes = unpack(v)
+    al = align(torch.as_tensor(shapes.transpose(0, 2, 1)[None]), init=state["rot"])
     rotations = al.rotations[0].numpy().transpose(0, 2, 1)  # object -> camera is R_f^T
     shapes = (shapes - shapes.mean(axis=1, keepdims=True)) * scale
     if not np.isfinite(shapes).all():
