@@ -1,9 +1,9 @@
 """EM-PND on the CPU and on a GPU: time, iterations and e3D of the same solve on each device.
 
-    python -m benchmarks.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--root DIR] [--out DIR]
+    python -m benchmarks.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--frames 1102] [--root DIR] [--out DIR]
 
-Sequences: a drink-sized synthetic one (1102 frames x 41 points, K = 5,
-random cameras, 0.5% 2D noise; always) and CMU drink when the data is found
+Sequences: a drink-sized synthetic one (``--frames`` frames, 1102 by default,
+x 41 points, K = 5, random cameras, 0.5% 2D noise; always) and CMU drink when the data is found
 (``--root`` or ``$NRSFM_DATA``). Each is solved with every fraction of
 ``--missing`` entries dropped (:func:`benchmarks.classic.drop_entries`) on
 every device of ``--devices`` (default: the CPU, and CUDA when torch sees a
@@ -20,26 +20,23 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
 
-DRINK_SIZED = "synthetic-lowrank-1102x41"
-
-
-def drink_sized():
-    """The drink-sized synthetic sequence (1102 x 41, K = 5, random cameras, 0.5% 2D noise)."""
+def drink_sized(n_frames: int = 1102):
+    """The drink-sized synthetic sequence (``n_frames`` x 41, K = 5, random cameras, 0.5% 2D noise)."""
     from nrsfm.datasets.synthetic import lowrank_sequence
 
-    return lowrank_sequence(1102, 41, 5, noise=0.005, cameras="random", seed=0, name=DRINK_SIZED)
+    return lowrank_sequence(n_frames, 41, 5, noise=0.005, cameras="random", seed=0,
+                            name=f"synthetic-lowrank-{n_frames}x41")
 
 
-def sequences(root: str | None) -> list:
+def sequences(root: str | None, n_frames: int = 1102) -> list:
     """The drink-sized synthetic sequence, and CMU drink when ``root`` (or ``$NRSFM_DATA``) holds it."""
     import nrsfm
 
-    seqs = [drink_sized()]
+    seqs = [drink_sized(n_frames)]
     base = root or os.environ.get("NRSFM_DATA")
     if base and (Path(base) / "nrsfm" / "drink.mat").is_file():
         seqs.append(nrsfm.load_sequence(Path(base) / "nrsfm" / "drink.mat"))
@@ -67,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu",
                    help="comma-separated devices (default: cpu, and cuda when torch sees a GPU)")
     p.add_argument("--missing", default="0,0.2", help="comma-separated fractions of entries to drop")
+    p.add_argument("--frames", type=int, default=1102, help="frames of the synthetic sequence (default: drink's)")
     p.add_argument("--root", default=None, help="data folder holding nrsfm/drink.mat (default: $NRSFM_DATA)")
     p.add_argument("--out", default="runs/speed_empnd")
     args = p.parse_args(argv)
@@ -75,13 +73,15 @@ def main(argv: list[str] | None = None) -> int:
         fractions = [float(m) for m in args.missing.split(",")]
         if not all(0 <= m < 1 for m in fractions):
             raise ValueError(f"--missing: expected fractions in [0, 1), got {args.missing}")
+        if args.frames < 20:
+            raise ValueError(f"--frames: expected at least 20, got {args.frames}")
         import nrsfm
         from nrsfm.device import pick_device
 
         for d in devices:
             pick_device(d)
-            nrsfm.solve(drink_sized().select_frames(np.arange(30)), "empnd", device=d, max_iter=3)  # warm-up
-        seqs = sequences(args.root)
+            nrsfm.solve(drink_sized(30), "empnd", device=d, max_iter=3, init="rigid")  # warm-up
+        seqs = sequences(args.root, args.frames)
     except (NRSfMError, ValueError) as exc:
         print(f"speed_empnd: error: {exc}", file=sys.stderr)
         return 2

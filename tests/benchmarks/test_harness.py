@@ -77,6 +77,25 @@ def test_classic_without_data_runs_the_stand_ins_and_refuses_unknown_names(tmp_p
     assert "expected CMU sequence files (.mat), found none" in capsys.readouterr().err
 
 
+def test_speed_empnd_times_each_device_and_refuses_bad_arguments(tmp_path, capsys, monkeypatch):
+    from benchmarks import speed_empnd
+
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    out = tmp_path / "out"
+    # 20% missing only: with complete tracks the authors' factorisation start takes 48 s on this short noisy
+    # sequence (its K grows to 27; benchmarks/RESULTS.md)
+    assert speed_empnd.main(["--devices", "cpu", "--missing", "0.2", "--frames", "40", "--out", str(out)]) == 0
+    assert "| synthetic-lowrank-40x41 | 20% | cpu |" in capsys.readouterr().out
+    rows = json.loads((out / "speed_empnd.json").read_text())["rows"]
+    assert [(r["missing"], r["device"]) for r in rows] == [(0.2, "cpu")]
+    for r in rows:
+        assert r["iterations"] >= 1 and 0 < r["start_s"] < r["seconds"] and r["e3d"] < 0.1
+    assert speed_empnd.main(["--devices", "tpu", "--out", str(out)]) == 2
+    assert "expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'tpu'" in capsys.readouterr().err
+    assert speed_empnd.main(["--missing", "1.5", "--out", str(out)]) == 2
+    assert "--missing: expected fractions in [0, 1)" in capsys.readouterr().err
+
+
 def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(pr_sweep, "CONFIGS", [(label, {**cfg, "max_iter": 50}) for label, cfg in pr_sweep.CONFIGS])
     root = tmp_path / "data" / "nrsfm"
