@@ -120,6 +120,40 @@ def test_auto_k_with_missing_points_matches_complete_tracks():
     assert rec.info["init_K"] == 4 and rec.info["impute_rank"] == 12
 
 
+def test_exact_completion_of_noise_free_tracks():
+    """The 150-frame face (rank 7) with 20% missing: the rank ladder stalls at 7 and fits 8, whose completion is
+    not unique; the descent finds 7 and the fill is the true W. CSF2 then matches its complete-track result."""
+    from nrsfm.datasets.synthetic import face_sequences
+    from nrsfm.solvers.base import complete_lowrank, lowrank_fit, visible_rank
+
+    seq, complete = face_sequences(4, 150, missing=0.2)[0], face_sequences(4, 150)[0]
+    w, truth = seq.measurement_matrix(), complete.measurement_matrix()
+    mask = np.repeat(seq.weights > 0, 2, axis=0)
+    factor = None
+    for rank in range(1, 8):  # the ladder alone: stuck at rank 7
+        residual, factor = lowrank_fit(w, mask, rank, start=factor)
+    assert residual > 1e-4
+    rank, b = visible_rank(w, mask, 18)
+    assert rank == 7 and b.shape == (7, w.shape[1])
+    filled, how = complete_lowrank(w, mask, 12, (rank, b))
+    assert how == "exact"
+    assert np.abs(filled - truth).max() < 1e-4 * np.abs(truth).max()
+    rec, ref = solve(seq, "csf2"), solve(complete, "csf2")
+    assert rec.info["completion"] == "exact" and rec.info["K"] == ref.info["K"] == 4
+    assert abs(e3d(rec.points_3d, seq.points_3d) - e3d(ref.points_3d, complete.points_3d)) < 1e-4
+
+
+def test_noisy_tracks_are_imputed_not_forced_to_a_rank():
+    seq = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)
+    w, mask = seq.measurement_matrix(), np.repeat(seq.weights > 0, 2, axis=0)
+    from nrsfm.solvers.base import complete_lowrank
+
+    filled, how = complete_lowrank(w, mask, 6)
+    assert how == "imputed" and np.isfinite(filled).all()
+    np.testing.assert_array_equal(filled[mask], w[mask])
+    assert solve(seq, "pr", max_iter=1).info["completion"] == "imputed"
+
+
 @pytest.mark.parametrize("case", ["rigid", "two_frames", "planar"])
 def test_pr_degenerate_inputs_never_nan(case, rng):
     if case == "rigid":
@@ -242,7 +276,9 @@ def test_csf2_occlusion_rounds_return_their_lowest_rmse_round(monkeypatch):
         return out
 
     monkeypatch.setattr(csf2, "_refine_masked", recording)
-    rec = solve(face_sequences(4, 150, missing=0.2)[3], "csf2", round_iter_alt=0)
+    # noisy tracks: imputed, then refined in rounds (noise-free ones are completed exactly and need no rounds)
+    rec = solve(face_sequences(4, 150, noise=1e-4, missing=0.2)[0], "csf2", round_iter_alt=0)
+    assert rec.info["completion"] == "imputed"
     rounds = seen[1:]  # the first call is the refinement before the rounds
     assert len(rounds) > 10 and rounds[-1] > min(rounds)  # the RMSE rose again before the rounds stopped
     assert rec.info["rmse"] == min(rounds)

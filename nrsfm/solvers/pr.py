@@ -50,7 +50,7 @@ import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
+from nrsfm.solvers.base import Reconstruction, complete_lowrank, register, require_visible_points, visible_rank
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ class PRParams:
         stages: continuation stages of the nuclear norm (geometric steps from start to end).
         max_iter: L-BFGS iterations (per stage for the nuclear norm).
         tol: L-BFGS relative function tolerance.
-        impute_rank: rank of the measurement-matrix imputation used to
+        impute_rank: rank of the measurement-matrix completion (:func:`~nrsfm.solvers.base.complete_lowrank`) used to
             initialise missing points (0: 3K with CSF2's automatic K, the rank CSF2 imputes with; rank 9
             gave yoga with 20% missing e3D .108 against .0196).
     """
@@ -125,16 +125,22 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
         raise SolverError(f"pr: expected at least 4 points, got {n_points}")
     visible = require_visible_points(seq, "pr")  # (F, P)
     w = seq.measurement_matrix()  # (2F, P)
+    completion = "none"
     if not visible.all():
-        from nrsfm.solvers.csf2 import auto_k
+        from nrsfm.solvers.csf2 import auto_k, auto_k_max_rank
 
         mask = np.repeat(visible, 2, axis=0)
+        max_rank = auto_k_max_rank(w)
+        if params.impute_rank and params.init_K:
+            max_rank = min(max_rank, params.impute_rank)
+        # the visible entries' exact rank, if any, for one K (CSF2's rule on a completion sees a full-rank W)
+        # and for the completion
+        fit = visible_rank(w, mask, max_rank)
         if not (params.impute_rank and params.init_K):
-            # one K from the visible entries for both: CSF2's rule on the completion sees a full-rank W
-            k = auto_k(w, mask)
+            k = auto_k(w, mask, fit=fit)
             params = replace(params, impute_rank=params.impute_rank or 3 * k,
                              init_K=params.init_K or k)
-        w = impute_lowrank(w, mask, params.impute_rank)
+        w, completion = complete_lowrank(w, mask, params.impute_rank, fit)
     p2 = w.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
     p2 = p2 - p2.mean(axis=1, keepdims=True)
     scale = np.sqrt((p2**2).sum() / n_frames)
@@ -195,7 +201,8 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     return Reconstruction(points_3d=shapes, rotations=rotations, method="pr", iterations=iterations,
                           converged=converged, info={"evaluations": state["evals"], "final_cost": float(res.fun),
                                                      "init": init_used, "init_K": params.init_K,
-                                                     "impute_rank": params.impute_rank})
+                                                     "impute_rank": params.impute_rank,
+                                                     "completion": completion})
 
 
 def _start(p2: np.ndarray, params: PRParams) -> tuple[np.ndarray, str]:
