@@ -371,13 +371,17 @@ def _row_factors(w: np.ndarray, mask: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.solve(bd @ bt.T, bd @ wz.transpose(0, 2, 1))
 
 
+def _lowrank_model(w: np.ndarray, mask: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Each frame's least-squares fit `(2F, P)` to the visible entries of `(2F, P)` ``w`` on the `(r, P)` column
+    factor ``b`` plus a translation (:func:`_row_factors`)."""
+    a = _row_factors(w, mask, b)  # (F, r+1, 2)
+    return (a.transpose(0, 2, 1) @ np.vstack([b, np.ones((1, w.shape[1]))])).reshape(w.shape)
+
+
 def fill_lowrank(w: np.ndarray, mask: np.ndarray, b: np.ndarray) -> np.ndarray:
     """`(2F, P)` ``w`` with its hidden entries (``mask`` False) replaced by each frame's least-squares fit on the
     `(r, P)` column factor ``b`` plus a translation."""
-    n_frames, n_points = w.shape[0] // 2, w.shape[1]
-    a = _row_factors(w, mask, b)  # (F, r+1, 2)
-    fit = (a.transpose(0, 2, 1) @ np.vstack([b, np.ones((1, n_points))])).reshape(2 * n_frames, n_points)
-    return np.where(mask, w, fit)
+    return np.where(mask, w, _lowrank_model(w, mask, b))
 
 
 def complete_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, fit: tuple[int, np.ndarray | None] | None = None,
@@ -403,11 +407,10 @@ def complete_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, fit: tuple[int,
     found, b = fit if fit is not None else visible_rank(w, mask, rank, rel_tol=rel_tol)
     if 0 < found <= rank and counts.min() > found + 1:
         try:
-            a = _row_factors(w, mask, b)  # (F, r+1, 2)
+            model = _lowrank_model(w, mask, b)  # (2F, P)
         except np.linalg.LinAlgError:
-            a = None
-        if a is not None:
-            model = (a.transpose(0, 2, 1) @ np.vstack([b, np.ones((1, n_points))])).reshape(2 * n_frames, n_points)
+            model = None
+        if model is not None:
             wz = np.where(mask, w, 0.0).reshape(n_frames, 2, n_points)  # (F, 2, P)
             centred = (wz - wz.sum(axis=2, keepdims=True) / counts[:, None, None]) * mask[0::2, None]
             if np.linalg.norm(np.where(mask, model - w, 0.0)) < rel_tol * np.linalg.norm(centred):
