@@ -299,6 +299,10 @@ def test_csf2_dct_weighted_gram_equals_the_direct_sum():
     omega, weights = dct_basis(57, 9), rng.standard_normal((57, 3, 3))
     np.testing.assert_allclose(dct_weighted_gram(weights, 9), np.einsum("fa,fb,fkl->abkl", omega, omega, weights),
                                atol=1e-13)
+    from nrsfm.solvers.csf2 import dct_weighted_gram_blocks
+
+    blocks = dct_weighted_gram(weights, 9).transpose(0, 2, 1, 3).reshape(27, 27)
+    np.testing.assert_array_equal(dct_weighted_gram_blocks(weights, 9), blocks)  # the same values, to the bit
 
 
 def test_csf2_camera_refinement_recovers_cameras_from_visible_entries():

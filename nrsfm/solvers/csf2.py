@@ -164,6 +164,34 @@ def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
     return gram * (scale[:, None] * scale[None]).reshape((d, d) + (1,) * (weights.ndim - 1))
 
 
+@functools.lru_cache(maxsize=8)
+def _block_gram_index(d: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices into the `(2d - 1, K, K)` cosine sums for the ``a + b`` and ``|a - b|`` terms of
+    :func:`dct_weighted_gram_blocks`, in its `(d, K, d, K)` layout (read-only, cached)."""
+    a = np.arange(d)
+    kl = np.arange(k)[None, :, None, None] * k + np.arange(k)[None, None, None, :]  # (1, K, 1, K)
+    plus = ((a[:, None, None, None] + a[None, None, :, None]) * k * k + kl).ravel()
+    minus = (np.abs(a[:, None, None, None] - a[None, None, :, None]) * k * k + kl).ravel()
+    plus.flags.writeable = minus.flags.writeable = False
+    return plus, minus
+
+
+def dct_weighted_gram_blocks(weights: np.ndarray, d: int) -> np.ndarray:
+    """:func:`dct_weighted_gram` of `(F, K, K)` weights laid out as the `(d K, d K)` matrix with entry
+    ``[(a, k), (b, l)]`` = ``G[a, b, k, l]``: the X-step's normal matrix, gathered straight into that layout (the
+    same values to the bit; on drink, K = 10, 5.4 ms against 7.8 ms with the transposed copy and the ridge)."""
+    n_frames, k = weights.shape[0], weights.shape[1]
+    sums = (_dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1)).ravel()  # (2d - 1) K K
+    plus, minus = _block_gram_index(d, k)
+    scale = np.full(d, np.sqrt(2 / n_frames))
+    scale[0] = np.sqrt(1 / n_frames)
+    gram = sums[plus].reshape(d, k, d, k)
+    gram += sums[minus].reshape(d, k, d, k)
+    gram *= 0.5
+    gram *= (scale[:, None] * scale[None])[:, None, :, None]
+    return gram.reshape(d * k, d * k)
+
+
 def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
            max_frames: int = 300, max_points: int = 60, fit: tuple[int, np.ndarray | None] | None = None) -> int:
     """CSF2's automatic K for a `(2F, P)` W: ``min(k_max, ceil(r / 3) + 1)`` with ``r`` the numerical rank of the
@@ -450,7 +478,7 @@ def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np
     """Alternating least squares on the visible entries of `(2F, P)` wc (S-step, X-step; X re-orthonormalised).
 
     ``omega`` must be :func:`dct_basis` ``(F, d)``: the X-step's normal matrix uses its cosine structure
-    (:func:`dct_weighted_gram`).
+    (:func:`dct_weighted_gram_blocks`).
 
     Returns X `(d, K)`, S `(K, 3, P)` and the RMSE over the visible entries.
     """
@@ -476,9 +504,10 @@ def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np
         af = (af * wmask[..., None]).reshape(n_frames, -1, k)  # (F, 2P, K)
         ata = af.transpose(0, 2, 1) @ af  # (F, K, K)
         atb = (af.transpose(0, 2, 1) @ target.reshape(n_frames, -1, 1))[..., 0]  # (F, K)
-        lhs = dct_weighted_gram(ata, d).transpose(0, 2, 1, 3).reshape(d * k, d * k)
+        lhs = dct_weighted_gram_blocks(ata, d)  # (dK, dK)
         rhs = (omega.T @ atb).reshape(d * k)
-        x = cho_solve(cho_factor(lhs + 1e-10 * np.trace(lhs) / (d * k) * np.eye(d * k)), rhs).reshape(d, k)
+        lhs[np.diag_indices(d * k)] += 1e-10 * np.trace(lhs) / (d * k)
+        x = cho_solve(cho_factor(lhs, overwrite_a=True, check_finite=False), rhs, check_finite=False).reshape(d, k)
         x, _ = np.linalg.qr(x)
         basis = s_step(x)
         rmse = _masked_rmse(x, basis)
