@@ -143,6 +143,18 @@ def test_exact_completion_of_noise_free_tracks():
     assert abs(e3d(rec.points_3d, seq.points_3d) - e3d(ref.points_3d, complete.points_3d)) < 1e-4
 
 
+def test_exact_completion_needs_every_point_seen_often_enough():
+    from nrsfm.solvers.base import complete_lowrank
+
+    seq = lowrank_sequence(60, 20, 2, seed=0)  # noise-free, rank 6 after centring
+    w = seq.measurement_matrix()
+    mask = np.ones_like(w, dtype=bool)
+    assert complete_lowrank(w, mask, 6)[1] == "exact"
+    mask[2:, 0] = False  # point 0 seen in one frame only: its column of the factor is not fixed
+    filled, how = complete_lowrank(w, mask, 6)
+    assert how == "imputed" and np.isfinite(filled).all()
+
+
 def test_noisy_tracks_are_imputed_not_forced_to_a_rank():
     seq = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)
     w, mask = seq.measurement_matrix(), np.repeat(seq.weights > 0, 2, axis=0)
