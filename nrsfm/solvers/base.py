@@ -311,16 +311,18 @@ def visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, *, rel_tol: flo
         least squares on the sampled frames' row factors, then refined), or ``(0, None)`` when no rank up to
         ``max_rank`` fits.
     """
+    if max_rank < 1:
+        return 0, None
     n_frames, n_points = w.shape[0] // 2, w.shape[1]
     cols = np.unique(np.linspace(0, n_points - 1, min(max_points, n_points)).round().astype(int))
     # frames that show more than max_rank + 1 sampled points (fewer say nothing about a rank-max_rank factor)
     usable = np.flatnonzero(mask[0::2][:, cols].sum(axis=1) > max_rank + 1)
     frames = usable[np.unique(np.linspace(0, len(usable) - 1, min(max_frames, len(usable))).round().astype(int))]
     rows = np.stack([2 * frames, 2 * frames + 1], axis=1).ravel()
-    sub_w, sub_mask = w[np.ix_(rows, cols)], mask[np.ix_(rows, cols)]
     if len(frames) < 2:
         return 0, None
-    if max_rank < 1 or lowrank_fit(sub_w, sub_mask, max_rank, rel_tol=rel_tol, max_iter=30)[0] > 100 * rel_tol:
+    sub_w, sub_mask = w[np.ix_(rows, cols)], mask[np.ix_(rows, cols)]
+    if lowrank_fit(sub_w, sub_mask, max_rank, rel_tol=rel_tol, max_iter=30)[0] > 100 * rel_tol:
         return 0, None  # not even the largest rank comes close: no smaller one fits (real tracks)
     factor, rank = None, 0
     for r in range(1, max_rank + 1):

@@ -155,13 +155,20 @@ def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
     """``G[a, b] = sum_f omega_fa omega_fb weights_f`` `(d, d, ...)` for the DCT basis of :func:`dct_basis` and
     `(F, ...)` weights, from ``2d - 1`` cosine sums (``cos x cos y = (cos(x + y) + cos(x - y)) / 2``): ``O(F d)``
     products instead of ``O(F d^2)`` (on drink, K = 10: 24 Mflop against 2.7 Gflop)."""
-    n_frames = weights.shape[0]
-    sums = (_dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1)).reshape((2 * d - 1,) + weights.shape[1:])
+    sums, scale = _dct_cosine_sums(weights, d)
+    sums = sums.reshape((2 * d - 1,) + weights.shape[1:])
     a = np.arange(d)
-    scale = np.full(d, np.sqrt(2 / n_frames))
-    scale[0] = np.sqrt(1 / n_frames)
     gram = 0.5 * (sums[a[:, None] + a[None]] + sums[np.abs(a[:, None] - a[None])])
     return gram * (scale[:, None] * scale[None]).reshape((d, d) + (1,) * (weights.ndim - 1))
+
+
+def _dct_cosine_sums(weights: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``2d - 1`` cosine sums `(2d - 1, prod(weights.shape[1:]))` of `(F, ...)` weights and the `(d,)` scale of
+    the DCT basis vectors (:func:`dct_basis`)."""
+    n_frames = weights.shape[0]
+    scale = np.full(d, np.sqrt(2 / n_frames))
+    scale[0] = np.sqrt(1 / n_frames)
+    return _dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1), scale
 
 
 @functools.lru_cache(maxsize=8)
@@ -180,11 +187,10 @@ def dct_weighted_gram_blocks(weights: np.ndarray, d: int) -> np.ndarray:
     """:func:`dct_weighted_gram` of `(F, K, K)` weights laid out as the `(d K, d K)` matrix with entry
     ``[(a, k), (b, l)]`` = ``G[a, b, k, l]``: the X-step's normal matrix, gathered straight into that layout (the
     same values to the bit; on drink, K = 10, 5.4 ms against 7.8 ms with the transposed copy and the ridge)."""
-    n_frames, k = weights.shape[0], weights.shape[1]
-    sums = (_dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1)).ravel()  # (2d - 1) K K
+    k = weights.shape[1]
+    sums, scale = _dct_cosine_sums(weights, d)
+    sums = sums.ravel()  # (2d - 1) K K
     plus, minus = _block_gram_index(d, k)
-    scale = np.full(d, np.sqrt(2 / n_frames))
-    scale[0] = np.sqrt(1 / n_frames)
     gram = sums[plus].reshape(d, k, d, k)
     gram += sums[minus].reshape(d, k, d, k)
     gram *= 0.5
