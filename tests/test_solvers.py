@@ -294,6 +294,7 @@ def test_csf2_occlusion_rounds_return_their_lowest_rmse_round(monkeypatch):
     rounds = seen[1:]  # the first call is the refinement before the rounds
     assert len(rounds) > 10 and rounds[-1] > min(rounds)  # the RMSE rose again before the rounds stopped
     assert rec.info["rmse"] == min(rounds)
+    assert rec.info["rounds"] == {"20": len(rounds)}
 
 
 def test_csf2_dct_basis_is_orthonormal():
@@ -331,6 +332,24 @@ def test_csf2_masked_lstsq_matches_per_point_least_squares():
         np.testing.assert_allclose(got[:, p], want, atol=1e-10)
     np.testing.assert_allclose(_masked_lstsq(a, b, np.ones((40, 5)), ridge=0.0),
                                np.linalg.lstsq(a.reshape(80, 6), b.reshape(80, 5), rcond=None)[0], atol=1e-10)
+
+
+def test_csf2_round_race_stops_only_the_follower_that_falls_behind():
+    import threading
+    import time
+
+    from nrsfm.solvers.csf2 import _RoundRace
+
+    race = _RoundRace(0.02, 30)
+    assert not race.behind(20, 9.0)  # before race_from: no comparison, no wait
+    race.post(30, 1.0)
+    assert race.behind(30, 1.03) and not race.behind(30, 1.01)
+    # the follower waits for the leader's post of the same round, so the outcome does not depend on timing
+    threading.Thread(target=lambda: (time.sleep(0.2), race.post(40, 1.0))).start()
+    assert race.behind(40, 1.5)
+    race.end()
+    assert not race.behind(50, 9.0)  # the leader stopped before round 50: nothing to compare with
+    assert not _RoundRace(0.02, 0).behind(30, 9.0)  # race_from = 0: no race
 
 
 def test_csf2_camera_refinement_recovers_cameras_from_visible_entries():
