@@ -56,8 +56,8 @@ is the better reconstruction on both sequences where they differ (drink: RMSE
 .001862 / .0617). The slower run (20 X/S iterations per round) stops early
 when, from round 30 on, its RMSE is more than 2% above the other run's at the
 same round (``race_margin``, ``race_from``; :class:`_RoundRace`): on drink it
-is 3% behind from round 30 to 150 and .9% behind at round 200, so it now stops
-at round 30 (drink with 20% missing: 97 s -> 51 s, the same result); nowhere
+is 2.9% behind at round 30, 1.8% at 100 and .9% at 200, so it now stops at
+round 30 (drink with 20% missing: 97 s -> 47 s, the same result); nowhere
 else we measured does either run fall 2% behind. ``info["rounds"]``: the
 rounds each run took, keyed by its X/S iterations per round.
 
@@ -453,7 +453,8 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     if completion == "imputed":  # an exact completion is as good as complete tracks: nothing to refine
         # many small products and solves per iteration: BLAS threads cost more than they give here (1102 x 41,
         # 20% missing, 2 cores: 102 s with two BLAS threads, 53 s with this limit; drink 330 s -> 168 s); the
-        # two runs of rounds below go on two Python threads instead (drink 114.7 s -> 99.5 s, the same result)
+        # two runs of rounds below go on two Python threads instead (drink 114.7 s -> 99.5 s, the same result;
+        # 47 s with the race between them, _RoundRace)
         with threadpool_limits(limits=1, user_api="blas"):
             x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
             if params.camera_rounds:
@@ -544,8 +545,8 @@ class _RoundRace:
     posts its RMSE every 10 rounds and never waits; the following run, at rounds ``start``, ``start + 10``, ...,
     waits for the leader's post of the same round (or its end) and stops when its own RMSE is more than
     ``margin`` above it. Only the follower reads the other's numbers, so the result does not depend on thread
-    timing. (Drink with 20% missing: the 20-iteration run is 3% behind from round 30 on and still .9% behind at
-    round 200; it stops at round 30 instead of taking the whole run's time. On pickup, yoga, stretch, dance,
+    timing. (Drink with 20% missing: the 20-iteration run is 2.9% behind at round 30, 1.8% at 100 and still .9%
+    behind at round 200; it stops at round 30 instead of taking the whole run's time. On pickup, yoga, stretch, dance,
     the shark and seven synthetic sequences neither run is 2% behind at any round: the same result.)"""
 
     def __init__(self, margin: float, start: int) -> None:
