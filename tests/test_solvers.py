@@ -318,19 +318,19 @@ def test_csf2_dct_weighted_gram_equals_the_direct_sum():
     np.testing.assert_array_equal(dct_weighted_gram_blocks(weights, 9), blocks)  # the same values, to the bit
 
 
-def test_csf2_masked_lstsq_matches_per_point_least_squares():
-    from nrsfm.solvers.csf2 import _masked_lstsq
+def test_masked_lstsq_matches_per_point_least_squares():
+    from nrsfm.solvers.base import masked_lstsq
 
     rng = np.random.default_rng(3)
     a, b = rng.standard_normal((40, 2, 6)), rng.standard_normal((40, 2, 5))
     vis = (rng.random((40, 5)) > 0.3).astype(float)
     vis[:, 4] = 1.0  # one point seen in every frame
-    got = _masked_lstsq(a, b, vis, ridge=0.0)
+    got = masked_lstsq(a, b, vis, ridge=0.0)
     for p in range(5):
         seen = vis[:, p] > 0
         want = np.linalg.lstsq(a[seen].reshape(-1, 6), b[seen, :, p].ravel(), rcond=None)[0]
         np.testing.assert_allclose(got[:, p], want, atol=1e-10)
-    np.testing.assert_allclose(_masked_lstsq(a, b, np.ones((40, 5)), ridge=0.0),
+    np.testing.assert_allclose(masked_lstsq(a, b, np.ones((40, 5)), ridge=0.0),
                                np.linalg.lstsq(a.reshape(80, 6), b.reshape(80, 5), rcond=None)[0], atol=1e-10)
 
 

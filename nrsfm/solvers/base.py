@@ -349,18 +349,33 @@ def visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, *, rel_tol: flo
         # the sampled frames' row factors and translations, then every point's column by least squares
         w_rows, m_rows = w[rows], mask[rows]
         a = _row_factors(sub_w, sub_mask, factor)  # (F', r+1, 2)
-        design = a[:, :rank].transpose(0, 2, 1).reshape(-1, rank)  # (2F', r)
         target = np.where(m_rows, w_rows - a[:, rank].reshape(-1, 1), 0.0)  # (2F', P), less the translations
-        vis = m_rows.astype(float)  # (2F', P)
-        gram = np.einsum("ip,ik,il->pkl", vis, design, design)  # (P, r, r)
         try:
-            cols_all = np.linalg.solve(gram, (design.T @ target).T[..., None])[..., 0]  # (P, r)
+            cols_all = masked_lstsq(a[:, :rank].transpose(0, 2, 1), target.reshape(len(frames), 2, n_points),
+                                    m_rows[0::2].astype(float), ridge=0.0)  # (r, P)
         except np.linalg.LinAlgError:
             return 0, None
-        residual, factor = lowrank_fit(w_rows, m_rows, rank, start=cols_all.T, rel_tol=rel_tol)
+        residual, factor = lowrank_fit(w_rows, m_rows, rank, start=cols_all, rel_tol=rel_tol)
         if residual >= rel_tol:
             return 0, None
     return rank, factor
+
+
+def masked_lstsq(a: np.ndarray, b: np.ndarray, vis: np.ndarray, ridge: float = 1e-10) -> np.ndarray:
+    """Per column p: argmin_s sum_f vis_fp ||a_f s - b_fp||^2 + ridge' ||s||^2 for `(F, R, C)` a (R rows per
+    frame, seen or missing together), `(F, R, P)` b and `(F, P)` visibility, with ``ridge' = ridge * mean diagonal
+    of the normal matrix``. The per-point normal matrices come from the per-frame ones (F of them, not F R; drink,
+    K = 10: 3.3 ms against 5.8 ms from the row outer products). Returns `(C, P)`."""
+    n_frames, n_rows, c = a.shape
+    if np.all(vis > 0):
+        a2 = a.reshape(n_frames * n_rows, c)
+        ata = a2.T @ a2
+        return np.linalg.solve(ata + ridge * np.trace(ata) / c * np.eye(c), a2.T @ b.reshape(n_frames * n_rows, -1))
+    g = a.transpose(0, 2, 1) @ a  # (F, C, C)
+    ata = (vis.T @ g.reshape(n_frames, c * c)).reshape(-1, c, c)  # (P, C, C)
+    atb = (b * vis[:, None]).reshape(n_frames * n_rows, -1).T @ a.reshape(n_frames * n_rows, c)  # (P, C)
+    ridge = ridge * np.trace(ata, axis1=1, axis2=2)[:, None, None] / c * np.eye(c)
+    return np.linalg.solve(ata + ridge, atb[..., None])[..., 0].T
 
 
 def _row_factors(w: np.ndarray, mask: np.ndarray, b: np.ndarray) -> np.ndarray:
