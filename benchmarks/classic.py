@@ -80,9 +80,6 @@ REFERENCE_SETTINGS = {
     "csf2": {"drink": {"K": 10}, "pickup": {"K": 10}, "yoga": {"K": 8}, "stretch": {"K": 8}, "dance": {"K": 2},
              "jaws_rearranged": {"K": 3}},
 }
-#: With missing points EM-PND starts from CSF2 (occlusion-aware), with that same K per sequence; with complete
-#: tracks it uses the authors' own start and needs no setting.
-MISSING_SETTINGS = {"empnd": {name: {"init_K": kw["K"]} for name, kw in REFERENCE_SETTINGS["csf2"].items()}}
 #: Which reference row a registered solver is compared with.
 SOLVER_REFERENCE = {"csf2": "CSF2", "empnd": "EM-PND2", "spm": "SPM", "pta": "PTA", "ksta": "KSTA"}
 
@@ -188,9 +185,9 @@ def solve_cell(job: str, method: str, missing: float, settings: str = "reference
            "missing": missing}
     overrides = {}
     if settings == "reference":
+        # EM-PND needs none: with missing points it starts from CSF2 with the automatic K (the e3D after EM is
+        # the same as from CSF2's reference K; benchmarks/RESULTS.md), with complete tracks from its own start
         overrides = dict(REFERENCE_SETTINGS.get(method, {}).get(seq.name, {}))
-        if missing > 0:
-            overrides.update(MISSING_SETTINGS.get(method, {}).get(seq.name, {}))
     row["settings"] = ",".join(f"{k}={v}" for k, v in overrides.items()) or "default"
     t0 = time.perf_counter()
     try:

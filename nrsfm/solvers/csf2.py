@@ -488,11 +488,12 @@ def fits_csf2(n_frames: int, n_points: int) -> bool:
     return min(2 * n_frames, n_points) >= 6
 
 
-def csf2_start(seq: Sequence, K: int = 0) -> np.ndarray:
+def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
     """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
-    3K <= min(2F, P) (0: the automatic rule). Check :func:`fits_csf2` first."""
+    3K <= min(2F, P) (0: the automatic rule); ``overrides``: other :class:`CSF2Params` fields. Check
+    :func:`fits_csf2` first."""
     k = min(K, min(2 * seq.n_frames, seq.n_points) // 3)
-    return solve_csf2.__wrapped__(seq, CSF2Params(K=k)).points_3d
+    return solve_csf2.__wrapped__(seq, CSF2Params(K=k, **overrides)).points_3d
 
 
 def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np.ndarray, x: np.ndarray,
