@@ -540,17 +540,33 @@ def test_rank3_rectification_drives_the_orthonormality_residual_down():
     assert abs(np.trace(gg) - 1) < 1e-12 and np.linalg.eigvalsh(gg).min() > -1e-12
 
 
-def test_orthonormality_constraints_gram_form_equals_the_direct_residual():
+@pytest.mark.parametrize("k", [5, 8])  # 10 frames: K^2 = 25 <= 4F uses the Gram matrix, 64 > 4F the factor
+def test_orthonormality_constraints_gram_form_equals_the_direct_residual(k):
+    import torch
+
     from nrsfm.solvers.rectify import OrthonormalityConstraints
 
-    u3 = np.linalg.qr(np.random.default_rng(0).standard_normal((40, 5)))[0]
+    u3 = np.linalg.qr(np.random.default_rng(0).standard_normal((20, k)))[0]
     con = OrthonormalityConstraints(u3)
-    gg = np.random.default_rng(1).standard_normal((5, 5))
+    assert (con._factor is None) == (k == 5)
+    gg = np.random.default_rng(1).standard_normal((k, k))
     gg = gg @ gg.T
     a, b = u3[0::2], u3[1::2]
     direct = np.concatenate([np.einsum("fi,ij,fj->f", a, gg, a) - np.einsum("fi,ij,fj->f", b, gg, b),
                              2 * np.einsum("fi,ij,fj->f", a, gg, b)])
-    assert abs(con.cost(gg)[0] * con.lipschitz - direct @ direct) < 1e-9 * (direct @ direct)
+    cost, half_grad = con.cost(gg)
+    assert abs(cost * con.lipschitz - direct @ direct) < 1e-9 * (direct @ direct)
+    g_t = torch.from_numpy(gg).requires_grad_(True)
+    at, bt = torch.from_numpy(a), torch.from_numpy(b)
+    res = torch.cat([((at @ g_t) * at).sum(1) - ((bt @ g_t) * bt).sum(1), 2 * ((at @ g_t) * bt).sum(1)])
+    (grad,) = torch.autograd.grad((res**2).sum(), g_t)  # over symmetric GG: its symmetric part
+    np.testing.assert_allclose(2 * half_grad * con.lipschitz, (grad + grad.T).numpy() / 2, rtol=1e-9, atol=1e-12)
+    # the scale is the largest eigenvalue of E^T E: a power iteration gets no higher
+    x = np.random.default_rng(2).standard_normal(k * k)
+    for _ in range(200):
+        x = con.cost(x.reshape(k, k))[1].ravel()
+        x /= np.linalg.norm(x)
+    assert abs(float(con.cost(x.reshape(k, k))[0]) - 1.0) < 1e-6
 
 
 def test_unit_trace_psd_projection():
