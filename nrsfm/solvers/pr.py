@@ -39,6 +39,14 @@ The CSF2 start runs on the tracks with missing entries filled by a
 rank-3K imputation (CSF2's automatic K; not the slower occlusion-aware CSF2); sequences too small
 for CSF2 (``min(2F, P) < 6``) or where it fails fall back to the rigid start,
 recorded in ``info["init"]``.
+
+Threads: L-BFGS runs with numpy's BLAS on one thread (``threadpoolctl``);
+torch keeps its own threads. Each evaluation mixes torch's batched `(3, 3)`
+work with numpy, and two thread pools busy-waiting on the same cores made
+PR several times slower on a 2-core machine (drink 20.1 -> 10.6 s, dance
+159.6 -> 28.5 s, the shark 39.3 -> 5.4 s with this limit; the same e3D).
+torch's own thread count is never changed: doing so can hang MKL
+(pytorch#141358; ``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
@@ -114,6 +122,7 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     """Per-sequence PR. See the module docstring for the model."""
     import scipy.optimize
     import torch
+    from threadpoolctl import threadpool_limits
 
     from nrsfm.procrustes import align, align_vjp, log_det_and_gradient, smoothed_nuclear_norm_and_gradient
 
@@ -185,12 +194,13 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     v = x0
     iterations = 0
     converged = True
-    for offset in offsets:
-        res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
-                                      options={"maxiter": params.max_iter, "ftol": params.tol, "gtol": 1e-12})
-        v = res.x
-        iterations += int(res.nit)
-        converged = bool(res.success)
+    with threadpool_limits(limits=1, user_api="blas"):  # see "Threads" in the module docstring
+        for offset in offsets:
+            res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
+                                          options={"maxiter": params.max_iter, "ftol": params.tol, "gtol": 1e-12})
+            v = res.x
+            iterations += int(res.nit)
+            converged = bool(res.success)
     shapes = unpack(v)
     al = align(torch.as_tensor(shapes.transpose(0, 2, 1)[None]), init=state["rot"])
     rotations = al.rotations[0].numpy().transpose(0, 2, 1)  # object -> camera is R_f^T
