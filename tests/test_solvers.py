@@ -468,6 +468,23 @@ def test_empnd_with_missing_points_and_degenerate_frames():
     assert np.isfinite(two.points_3d).all()
 
 
+def test_empnd_cuts_the_csf2_start_short_with_missing_points(monkeypatch):
+    import nrsfm.solvers.empnd as empnd
+
+    seen = {}
+
+    def start(seq, k, **overrides):
+        seen.update(overrides, K=k)
+        return seq.points_3d + 0.01
+
+    monkeypatch.setattr(empnd, "csf2_start", start)
+    seq = lowrank_sequence(60, 12, 2, seed=4, missing=0.1)
+    solve(seq, "empnd", init_rounds=7, init_K=2, max_iter=3)
+    assert seen == {"camera_rounds": 7, "round_iter": 5, "round_iter_alt": 0, "K": 2}
+    with pytest.raises(ValidationError, match="init_rounds: expected >= 0, got -1"):
+        solve(seq, "empnd", init_rounds=-1)
+
+
 def test_pick_device_refuses_unknown_names_and_absent_gpus():
     import torch
 
