@@ -49,16 +49,20 @@ class OrthonormalityConstraints:
         diff = (a[:, :, None] * a[:, None, :] - b[:, :, None] * b[:, None, :]).reshape(-1, k * k)
         cross = a[:, :, None] * b[:, None, :]
         cross = (cross + cross.transpose(0, 2, 1)).reshape(-1, k * k)
+        self._gram = self._factor = None
         if k * k <= 4 * diff.shape[0]:  # the cheaper product: K^4 against 2 (2F) K^2
-            gram = diff.T @ diff + cross.T @ cross
-            self.lipschitz = float(scipy.linalg.eigh(gram, eigvals_only=True, subset_by_index=[k * k - 1] * 2)[0])
-            self._gram, self._factor = gram / max(self.lipschitz, 1e-300), None
+            self._gram = diff.T @ diff + cross.T @ cross
+            self.lipschitz = float(scipy.linalg.eigh(self._gram, eigvals_only=True,
+                                                     subset_by_index=[k * k - 1] * 2)[0])
         else:
-            factor = np.concatenate([diff, cross])  # (2F, K^2)
-            self.lipschitz = float(np.linalg.norm(factor, 2)) ** 2
-            self._gram, self._factor = None, factor / np.sqrt(max(self.lipschitz, 1e-300))
+            self._factor = np.concatenate([diff, cross])  # (2F, K^2)
+            self.lipschitz = float(np.linalg.norm(self._factor, 2)) ** 2
         if self.lipschitz <= 0:
             raise SolverError("factorisation start: the orthonormality constraints vanish (degenerate tracks)")
+        if self._factor is None:
+            self._gram /= self.lipschitz
+        else:
+            self._factor /= np.sqrt(self.lipschitz)
 
     def cost(self, gg: np.ndarray) -> tuple[float, np.ndarray]:
         """Scaled squared residual of `(K, K)` ``gg`` and its half-gradient `(K, K)`."""
