@@ -212,6 +212,21 @@ class Sequence:
                             points_3d=take(self.points_3d), camera_rotations=take(self.camera_rotations),
                             intrinsics=k)
 
+    def select_points(self, points: slice | np.ndarray | list[int]) -> "Sequence":
+        """A sequence restricted to ``points`` (a slice, index array or `(P,)` boolean mask), in that order;
+        joint names follow, and edges between two kept points are renumbered (the others are dropped)."""
+        idx = np.arange(self.n_points)[points]
+        take = lambda a: None if a is None else a[:, idx]  # noqa: E731
+        names = None if self.joint_names is None else tuple(self.joint_names[i] for i in idx)
+        edges = self.edges
+        if edges is not None:
+            new_index = np.full(self.n_points, -1)
+            new_index[idx] = np.arange(len(idx))
+            e = new_index[edges]
+            edges = e[(e >= 0).all(axis=1)]
+        return self.replace(points_2d=self.points_2d[:, idx], visibility=take(self.visibility),
+                            points_3d=take(self.points_3d), joint_names=names, edges=edges)
+
     def measurement_matrix(self) -> np.ndarray:
         """The classic `(2F, P)` matrix W, rows 2f and 2f+1 holding x and y of frame f."""
         return self.points_2d.transpose(0, 2, 1).reshape(2 * self.n_frames, self.n_points).copy()

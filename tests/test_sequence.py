@@ -88,3 +88,15 @@ def test_select_frames_keeps_all_fields():
     assert sub.n_frames == 4
     np.testing.assert_array_equal(sub.points_3d, seq.points_3d[2:6])
     np.testing.assert_array_equal(sub.camera_rotations, seq.camera_rotations[2:6])
+
+
+def test_select_points_keeps_names_and_renumbers_edges():
+    seq = lowrank_sequence(6, 5, 2, missing=0.1, seed=1).replace(
+        joint_names=("a", "b", "c", "d", "e"), edges=np.array([[0, 1], [1, 2], [2, 4], [3, 4]]))
+    sub = seq.select_points(np.array([True, False, True, True, True]))
+    assert sub.joint_names == ("a", "c", "d", "e")
+    np.testing.assert_array_equal(sub.edges, [[1, 3], [2, 3]])  # edges through the dropped point go
+    np.testing.assert_array_equal(sub.points_2d, seq.points_2d[:, [0, 2, 3, 4]])
+    np.testing.assert_array_equal(sub.visibility, seq.visibility[:, [0, 2, 3, 4]])
+    np.testing.assert_array_equal(sub.points_3d, seq.points_3d[:, [0, 2, 3, 4]])
+    np.testing.assert_array_equal(sub.camera_rotations, seq.camera_rotations)

@@ -193,14 +193,30 @@ def _coerce(key: str, raw: str, hint: Any) -> Any:
 
 def require_visible_points(seq: Sequence, method: str, minimum: int = 3) -> np.ndarray:
     """`(F, P)` visibility mask; raises a :class:`SolverError` naming the first frame with fewer than
-    ``minimum`` visible points."""
+    ``minimum`` visible points, or the first point visible in no frame (nothing constrains it)."""
     vis = seq.weights > 0
     short = vis.sum(axis=1) < minimum
     if short.any():
         f = int(np.argmax(short))
         raise SolverError(f"{method}: frame {f} has fewer than {minimum} visible points; drop it "
                           "(seq.select_frames) first")
+    unseen = ~vis.any(axis=0)
+    if unseen.any():
+        p = int(np.argmax(unseen))
+        raise SolverError(f"{method}: point {p} is visible in no frame ({int(unseen.sum())} such points); drop "
+                          "them (seq.select_points(seq.visibility.any(axis=0))) first")
     return vis
+
+
+def power_of_two_unit(w: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The power of two nearest the RMS of a `(2F, P)` W's visible entries about each row's visible mean (1 when
+    that RMS is 0). Dividing by it is exact in floating point and brings any track set to unit order, so a
+    solver's absolute constants (damping, tolerances, ridges) mean the same whatever the units of the tracks."""
+    mask = np.ones(w.shape, dtype=bool) if mask is None else mask
+    count = np.maximum(mask.sum(axis=1, keepdims=True), 1)
+    centred = np.where(mask, w - np.where(mask, w, 0.0).sum(axis=1, keepdims=True) / count, 0.0)
+    rms = float(np.sqrt((centred**2).sum() / max(int(mask.sum()), 1)))
+    return 2.0 ** round(np.log2(rms)) if rms > 0 and np.isfinite(rms) else 1.0
 
 
 def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray | None = None,

@@ -61,6 +61,15 @@ round 30 (drink with 20% missing: 97 s -> 47 s, the same result); nowhere
 else we measured does the slower run fall 2% behind. ``info["rounds"]``: the
 rounds each run took, keyed by its X/S iterations per round.
 
+Units: W is first divided by the power of two nearest the RMS of its centred
+visible entries (:func:`~nrsfm.solvers.base.power_of_two_unit`; exact in
+floating point) and the shapes are multiplied back at the end, so the camera
+step's BFGS tolerances and the shape step's damping mean the same in any units.
+Without it, a noise-free 60 x 20 sequence gave e3D .98 with an RMS of 1e5 and
+.38 at 1e-9, against .044 at 1 (and EM-PPCA, which starts from CSF2, .86 at
+1e5); the CMU files' shapes move by at most 3e-5 (relative), e3D by at most
+1e-6.
+
 Automatic K and d (``K=0``/``d=0``; the authors always set them by hand):
 K = min(8, ceil(r / 3) + 1) with r the numerical rank of the centred W (so an
 exactly low-rank W gets one basis shape more than it strictly needs: the
@@ -92,8 +101,8 @@ from threadpoolctl import threadpool_limits
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import (Reconstruction, complete_lowrank, masked_lstsq, visible_rank, register,
-                                require_visible_points)
+from nrsfm.solvers.base import (Reconstruction, complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank,
+                                register, require_visible_points)
 
 
 @dataclass(frozen=True)
@@ -421,8 +430,9 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = seq.weights > 0  # (F, P)
     require_visible_points(seq, "csf2")
-    w = seq.measurement_matrix()  # (2F, P)
     mask = np.repeat(vis, 2, axis=0)  # (2F, P)
+    unit = power_of_two_unit(seq.measurement_matrix(), mask)  # the tracks' units; shapes are scaled back at the end
+    w = seq.measurement_matrix() / unit  # (2F, P)
     complete = bool(vis.all())
     # the visible entries' exact rank, if any: for the automatic K and the completion
     max_rank = min(auto_k_max_rank(w), 3 * params.K) if params.K else auto_k_max_rank(w)
@@ -477,8 +487,8 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame
     points = np.einsum("fij,fpj->fpi", rot, shapes_obj)
     points -= points.mean(axis=1, keepdims=True)
-    return Reconstruction(points_3d=points, rotations=rot, method="csf2", iterations=it, converged=converged,
-                          info={"K": k, "d": d, "rmse": float(rmse), "camera_residual": cam_residual,
+    return Reconstruction(points_3d=points * unit, rotations=rot, method="csf2", iterations=it, converged=converged,
+                          info={"K": k, "d": d, "rmse": float(rmse) * unit, "camera_residual": cam_residual,
                                 "camera_columns": cam_cols, "shape_start": shape_start, "completion": completion,
                                 "rounds": rounds_run})
 

@@ -22,8 +22,14 @@ Rotation (cameras):
 
 Shape: with ``S_f = R_f^T [W_f; z_f]`` (exact reprojection), minimise the
 nuclear norm of ``S#`` `(F, 3P)` (rows ``[X_f Y_f Z_f]``) over the depths
-``z`` — with cvxpy for small problems, or by ADMM (:func:`shape_admm`) for
-long sequences; the two agree on small problems (a test checks 1e-4). The
+``z`` — with cvxpy for small problems (``F * 3P <= cvxpy_limit``, 1000), or by
+ADMM (:func:`shape_admm`) otherwise; the two agree on small problems (a test
+checks 1e-4). Clarabel's interior point on the nuclear norm's semidefinite
+program grows fast with the size: 0.6-1.5 s up to 900 entries of ``S#``,
+4.5-8.3 s at 1200-1800 and 32-59 s at 3600 (60 x 20 and 100 x 12 frames x
+points), where ADMM takes 0.001-0.03 s and lands within 1e-4 (relative) of
+cvxpy's depths (the limit was 4000 until session 18, when a 60-frame,
+20-point sequence took 32 s). The
 authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
 reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
 0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
@@ -46,7 +52,7 @@ import numpy as np
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register
+from nrsfm.solvers.base import Reconstruction, power_of_two_unit, register
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +82,7 @@ class SPMParams:
     fpc_outer: int = 20
     fpc_inner: int = 100
     fpc_tol: float = 1e-7
-    cvxpy_limit: int = 4000
+    cvxpy_limit: int = 1000
 
     def __post_init__(self) -> None:
         if self.shape_solver not in ("auto", "cvxpy", "admm", "fpc"):
@@ -171,15 +177,19 @@ def resolve_signs(rot: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 def shape_cvxpy(w: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """Depths `(F, P)` minimising ``||S#||_*`` exactly (cvxpy), for `(F, 2, P)` centred ``w``, `(F, 3, 3)` ``rot``."""
+    """Depths `(F, P)` minimising ``||S#||_*`` exactly (cvxpy), for `(F, 2, P)` centred ``w``, `(F, 3, 3)` ``rot``.
+
+    The program sees ``w`` in units of the power of two nearest its RMS (Clarabel's tolerances are absolute: at
+    RMS 1e-7 it stopped inaccurate on a noise-free 40 x 15 sequence, e3D .0165 against .0000 at 1)."""
     import cvxpy as cp
 
     n_frames, _, n_points = w.shape
-    base = np.einsum("fji,fjp->fip", rot[:, :2], w)  # (F, 3, P) = R^(2)T W
+    unit = power_of_two_unit(w.reshape(n_frames * 2, n_points))
+    base = np.einsum("fji,fjp->fip", rot[:, :2], w / unit)  # (F, 3, P) = R^(2)T W
     r3 = rot[:, 2]  # (F, 3)
     z = cp.Variable((n_frames, n_points))
     blocks = [base[:, i, :] + cp.multiply(np.repeat(r3[:, i:i + 1], n_points, axis=1), z) for i in range(3)]
-    return _solve(cp.Problem(cp.Minimize(cp.normNuc(cp.hstack(blocks)))), z, "shape")
+    return _solve(cp.Problem(cp.Minimize(cp.normNuc(cp.hstack(blocks)))), z, "shape") * unit
 
 
 def singular_value_threshold(m: np.ndarray, t: float) -> np.ndarray:
