@@ -203,8 +203,8 @@ def require_visible_points(seq: Sequence, method: str, minimum: int = 3) -> np.n
     unseen = ~vis.any(axis=0)
     if unseen.any():
         p = int(np.argmax(unseen))
-        raise SolverError(f"{method}: point {p} is visible in no frame ({int(unseen.sum())} such points); drop "
-                          "them (seq.select_points(seq.visibility.any(axis=0))) first")
+        raise SolverError(f"{method}: point {p} is visible in no frame ({int(unseen.sum())} of {vis.shape[1]} "
+                          "points are); drop them (seq.select_points(seq.visibility.any(axis=0))) first")
     return vis
 
 

@@ -431,8 +431,9 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     vis = seq.weights > 0  # (F, P)
     require_visible_points(seq, "csf2")
     mask = np.repeat(vis, 2, axis=0)  # (2F, P)
-    unit = power_of_two_unit(seq.measurement_matrix(), mask)  # the tracks' units; shapes are scaled back at the end
-    w = seq.measurement_matrix() / unit  # (2F, P)
+    w = seq.measurement_matrix()  # (2F, P)
+    unit = power_of_two_unit(w, mask)  # the tracks' units; the shapes are scaled back at the end
+    w /= unit
     complete = bool(vis.all())
     # the visible entries' exact rank, if any: for the automatic K and the completion
     max_rank = min(auto_k_max_rank(w), 3 * params.K) if params.K else auto_k_max_rank(w)

@@ -27,9 +27,9 @@ ADMM (:func:`shape_admm`) otherwise; the two agree on small problems (a test
 checks 1e-4). Clarabel's interior point on the nuclear norm's semidefinite
 program grows fast with the size: 0.6-1.5 s up to 900 entries of ``S#``,
 4.5-8.3 s at 1200-1800 and 32-59 s at 3600 (60 x 20 and 100 x 12 frames x
-points), where ADMM takes 0.001-0.03 s and lands within 1e-4 (relative) of
-cvxpy's depths (the limit was 4000 until session 18, when a 60-frame,
-20-point sequence took 32 s). The
+points), where ADMM takes 0.001-0.03 s and lands within 5e-4 (relative) of
+cvxpy's depths (with the limit at 4000, SPM took 32 s on a 60-frame, 20-point
+sequence). The
 authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
 reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
 0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
