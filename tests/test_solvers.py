@@ -735,6 +735,14 @@ def test_a_point_never_visible_is_refused_with_the_fix():
     assert kept.n_points == 11 and np.isfinite(solve(kept, "csf2").points_3d).all()
 
 
+def test_every_solver_refuses_three_points():
+    """A triangle is planar: rank3, CSF2, SPM and EM-PPCA returned shapes with e3D .9-5.5 before."""
+    seq = lowrank_sequence(20, 3, 1, seed=1)
+    for name in available_solvers():
+        with pytest.raises(SolverError, match=rf"^{name}: expected at least 4 points, got 3"):
+            solve(seq, name)
+
+
 @pytest.mark.parametrize("name", ["rank3", "csf2", "spm", "pr", "empnd", "emppca"])
 def test_solvers_do_not_depend_on_the_units_of_the_tracks(name):
     """The same noise-free sequence in units 1e5 and 1e-7 times smaller or larger: the same e3D (CSF2 gave .98

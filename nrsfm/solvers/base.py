@@ -126,6 +126,9 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
                                   f"({', '.join(n for n, s in _REGISTRY.items() if s.handles_missing) or 'none yet'})")
             if seq.n_frames < 2:
                 raise SolverError(f"{name}: expected at least 2 frames, got {seq.n_frames}")
+            if seq.n_points < 4:
+                raise SolverError(f"{name}: expected at least 4 points, got {seq.n_points}; 3 points always lie in "
+                                  "a plane, so their depths cannot be recovered")
             t0 = time.perf_counter()
             with large_arrays_on_heap():  # no mmap/munmap of large temporaries every iteration (nrsfm._malloc)
                 rec = fn(seq, params)
