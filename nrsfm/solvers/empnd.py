@@ -248,8 +248,8 @@ class CompletePosterior:
     per frame; the second moments are kept as ``V diag(g_f) V^T`` (one weight
     vector per frame) plus a rank-(q+1) part stored as `(3, 3)` blocks, so
     :meth:`moment` is a few matrix products, with `O(q * 3q)` memory beyond the
-    blocks (a precomputed `(27q, q^2)` table before session 18: 1.7 GB at 200
-    points, 18.8 GB peak at 300; 30 x 300 then ran 11 s an iteration against
+    blocks (the earlier form precomputed a `(27q, q^2)` table: 1.7 GB at 200
+    points, an 18.8 GB peak at 300, and 11 s an iteration on 30 x 300 against
     1.5 s now). Same results as :class:`DensePosterior` (tested to 1e-9).
     """
 
