@@ -299,8 +299,7 @@ class CompletePosterior:
         delta = sr @ self._to_aligned  # K'_f K_f^-1
         coef = _pair_weights(delta).reshape(n, 81).T @ self._g  # (81 [(j,l),(m,o)], dim)
         # sum_f (delta_f kron I) V diag(g_f) V^T (delta_f kron I)^T, block (j, l) = sum_{m,o} V_m diag(c_jlmo) V_o^T:
-        # contract m first (batched over e), then (o, e) in one product; O(q dim) memory (a precomputed
-        # (9 dim, q^2) table of V_m[a, e] V_o[b, e] took 1.7 GB at 200 points)
+        # contract m first (batched over e), then (o, e) in one product: O(q dim) memory (class docstring)
         half = torch.einsum("jlmoe,mae->jlaoe", coef.reshape(3, 3, 3, 3, dim), self._v3)  # (3, 3, q, 3, dim)
         diag_part = (half.reshape(9, q, 3 * dim) @ self._v_rows).reshape(9, q * q)
         return _as_matrix(diag_part + _rotated_block_sum(delta, self._blocks), q) / n
@@ -342,8 +341,6 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
         raise SolverError(f"empnd: expected orthographic tracks, got {seq.projection}")
     vis = require_visible_points(seq, "empnd")
     n, p = seq.n_frames, seq.n_points
-    if p < 4:
-        raise SolverError(f"empnd: expected at least 4 points, got {p}")
     q = p - 1
     dim = 3 * q
     cdim = dim - 4

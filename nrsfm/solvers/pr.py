@@ -130,8 +130,6 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
         raise SolverError(f"pr: expected orthographic tracks, got {seq.projection}; normalise perspective "
                           "detections with the intrinsics first")
     n_frames, n_points = seq.n_frames, seq.n_points
-    if n_points < 4:
-        raise SolverError(f"pr: expected at least 4 points, got {n_points}")
     visible = require_visible_points(seq, "pr")  # (F, P)
     w = seq.measurement_matrix()  # (2F, P)
     completion = "none"
