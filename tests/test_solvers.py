@@ -43,15 +43,15 @@ def test_rank3_refuses_missing_points_with_a_hint():
         solve(seq, "rank3")
 
 
-@pytest.mark.parametrize("case", ["planar", "two_frames", "collinear_noise"])
+@pytest.mark.parametrize("case", ["planar", "three_frames", "collinear_noise"])
 def test_rank3_degenerate_inputs_never_nan(case, rng):
     if case == "planar":
         shape = np.c_[rng.standard_normal((10, 2)), np.zeros(10)]
         seq = lowrank_sequence(10, 10, 1, seed=0)
         pts = np.einsum("fij,pj->fpi", seq.camera_rotations, shape)
         seq = Sequence(points_2d=pts[..., :2], points_3d=pts)
-    elif case == "two_frames":
-        seq = lowrank_sequence(2, 10, 1, seed=0)
+    elif case == "three_frames":
+        seq = lowrank_sequence(3, 10, 1, seed=0)
     else:
         line = np.outer(rng.standard_normal(8), [1.0, 2.0])
         seq = Sequence(points_2d=np.repeat(line[None], 5, axis=0) + 1e-6 * rng.standard_normal((5, 8, 2)))
@@ -166,12 +166,12 @@ def test_noisy_tracks_are_imputed_not_forced_to_a_rank():
     assert solve(seq, "pr", max_iter=1).info["completion"] == "imputed"
 
 
-@pytest.mark.parametrize("case", ["rigid", "two_frames", "planar"])
+@pytest.mark.parametrize("case", ["rigid", "three_frames", "planar"])
 def test_pr_degenerate_inputs_never_nan(case, rng):
     if case == "rigid":
         seq = lowrank_sequence(30, 10, 1, seed=0)
-    elif case == "two_frames":
-        seq = lowrank_sequence(2, 10, 2, seed=0)
+    elif case == "three_frames":
+        seq = lowrank_sequence(3, 10, 2, seed=0)
     else:
         shape = np.c_[rng.standard_normal((10, 2)), np.zeros(10)]
         rot = lowrank_sequence(10, 10, 1, seed=0).camera_rotations
@@ -467,8 +467,8 @@ def test_empnd_with_missing_points_and_degenerate_frames():
     vis[3, :6] = 0
     with pytest.raises(SolverError, match="frame 3 has fewer than 3 visible points"):
         solve(lowrank_sequence(10, 8, 2, seed=0).replace(visibility=vis), "empnd")
-    two = solve(lowrank_sequence(2, 10, 1, seed=0), "empnd", max_iter=20)
-    assert np.isfinite(two.points_3d).all()
+    three = solve(lowrank_sequence(3, 10, 2, seed=0), "empnd", max_iter=20)
+    assert np.isfinite(three.points_3d).all()
 
 
 def test_empnd_cuts_the_csf2_start_short_with_missing_points(monkeypatch):
@@ -693,8 +693,8 @@ def _degenerate(case: str) -> Sequence:
         shape = np.c_[rng.standard_normal((10, 2)), np.zeros(10)]
         pts = np.einsum("fij,pj->fpi", lowrank_sequence(10, 10, 1, seed=0).camera_rotations, shape)
         return Sequence(points_2d=pts[..., :2], points_3d=pts)
-    if case == "two_frames":
-        return lowrank_sequence(2, 10, 2, seed=0)
+    if case == "three_frames":  # 6 rows: a rank-3K factorisation with K = 2 fits W exactly
+        return lowrank_sequence(3, 10, 2, seed=0)
     if case == "static_camera":  # one frame repeated: no 3D information at all
         return Sequence(points_2d=np.repeat(lowrank_sequence(10, 10, 1, seed=0).points_2d[:1], 10, axis=0))
     vis = np.ones((30, 12))
@@ -705,7 +705,7 @@ def _degenerate(case: str) -> Sequence:
     return lowrank_sequence(30, 12, 2, seed=0).replace(visibility=vis)
 
 
-@pytest.mark.parametrize("case", ["rigid", "planar", "two_frames", "static_camera", "frame_all_missing",
+@pytest.mark.parametrize("case", ["rigid", "planar", "three_frames", "static_camera", "frame_all_missing",
                                   "point_never_visible"])
 def test_every_solver_gives_finite_shapes_or_a_clear_error_on_degenerate_input(case):
     """The issue's degenerate inputs, for every registered solver: finite shapes and cameras, or an NRSfMError
@@ -733,6 +733,17 @@ def test_a_point_never_visible_is_refused_with_the_fix():
         solve(seq, "csf2")
     kept = seq.select_points(seq.visibility.any(axis=0))
     assert kept.n_points == 11 and np.isfinite(solve(kept, "csf2").points_3d).all()
+
+
+def test_every_solver_refuses_two_frames():
+    """Two orthographic views leave even a rigid shape's depths free (a rotation about one axis): every solver
+    returned e3D .27-8.5 on a rigid 2 x 15 sequence before, against .0000 from three frames."""
+    seq = lowrank_sequence(2, 15, 1, seed=1)
+    for name in available_solvers():
+        with pytest.raises(SolverError, match=rf"^{name}: expected at least 3 frames, got 2"):
+            solve(seq, name)
+        assert e3d(solve(lowrank_sequence(3, 15, 1, seed=1), name).points_3d,
+                   lowrank_sequence(3, 15, 1, seed=1).points_3d) < 1e-3, name
 
 
 def test_every_solver_refuses_three_points():

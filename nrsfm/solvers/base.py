@@ -124,8 +124,9 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
                 raise SolverError(f"{name}: expected complete tracks, got {seq.missing_fraction:.1%} missing "
                                   f"entries in '{seq.name}'; use a solver that handles missing points "
                                   f"({', '.join(n for n, s in _REGISTRY.items() if s.handles_missing) or 'none yet'})")
-            if seq.n_frames < 2:
-                raise SolverError(f"{name}: expected at least 2 frames, got {seq.n_frames}")
+            if seq.n_frames < 3:
+                raise SolverError(f"{name}: expected at least 3 frames, got {seq.n_frames}; two orthographic views "
+                                  "of even a rigid shape leave its depths free up to a rotation about one axis")
             if seq.n_points < 4:
                 raise SolverError(f"{name}: expected at least 4 points, got {seq.n_points}; 3 points always lie in "
                                   "a plane, so their depths cannot be recovered")

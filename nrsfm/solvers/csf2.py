@@ -281,7 +281,7 @@ def refine_triple(pi: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, float]:
         grad = pa.T @ (ca[:, None] * a + co[:, None] * b) + pb.T @ (cb[:, None] * b + co[:, None] * a)
         return 0.5 * float(e @ e + o @ o), grad.ravel()
 
-    # LM needs at least as many residuals (2F) as unknowns (3r); with fewer frames (two frames, K >= 1) the
+    # LM needs at least as many residuals (2F) as unknowns (3r); with fewer frames (three frames, K >= 1) the
     # trust-region solver polishes instead
     method = "lm" if 2 * pi.shape[0] >= 3 * r else "trf"
 
