@@ -459,6 +459,17 @@ def test_empnd_recovers_a_noise_free_low_rank_sequence():
     assert np.isfinite(rec.rotations).all() and rec.iterations >= 2
 
 
+def test_empnd_starts_from_another_solver():
+    seq = lowrank_sequence(60, 15, 2, seed=3)
+    for init in ("spm", "pr"):
+        rec = solve(seq, "empnd", init=init)
+        assert rec.info["init"] == init and e3d(rec.points_3d, seq.points_3d) < 1e-3, init
+    with pytest.raises(ValidationError, match="init='spm' needs every point visible"):
+        solve(lowrank_sequence(30, 10, 2, seed=0, missing=0.1), "empnd", init="spm")
+    with pytest.raises(ValidationError, match="init: expected one of"):
+        solve(seq, "empnd", init="c3dpo")
+
+
 def test_empnd_with_missing_points_and_degenerate_frames():
     seq = lowrank_sequence(120, 25, 2, seed=2, missing=0.2)
     rec = solve(seq, "empnd")

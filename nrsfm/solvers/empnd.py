@@ -99,7 +99,7 @@ from nrsfm.solvers.csf2 import csf2_start, fits_csf2
 _DT = torch.float64
 
 
-INITS = ("auto", "factorisation", "csf2", "rigid")
+INITS = ("auto", "factorisation", "csf2", "rigid", "spm", "pr")
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,8 @@ class EMPNDParams:
         init: the start. ``"factorisation"``: the authors' own (rank-3 rectification of a
             rank-3K factorisation, trace-minimising depths; :mod:`nrsfm.solvers.rectify`),
             complete tracks only. ``"csf2"``: CSF2's reconstruction (its occlusion-aware form
-            when points are missing). ``"rigid"``: the rank-3 factorisation. ``"auto"`` (default):
+            when points are missing). ``"rigid"``: the rank-3 factorisation. ``"spm"``, ``"pr"``: that
+            solver's reconstruction with its defaults (``"spm"``: complete tracks only). ``"auto"`` (default):
             with every point visible, the factorisation start (and, with ``probe_iter > 0``, also
             CSF2's: EM runs ``probe_iter`` iterations from each and goes on from the one with the
             lower PND cost); with missing points, CSF2.
@@ -504,6 +505,13 @@ def _start_shapes(seq: Sequence, params: EMPNDParams, kind: str) -> np.ndarray:
         return factorisation_start(seq.points_2d)
     if kind == "csf2":
         return csf2_start(seq, params.init_K, camera_rounds=params.init_rounds, round_iter=5, round_iter_alt=0)
+    if kind in ("spm", "pr"):
+        from nrsfm.solvers import solve
+
+        if kind == "spm" and not bool((seq.weights > 0).all()):
+            raise ValidationError("empnd: init='spm' needs every point visible; this sequence has "
+                                  f"{int((seq.weights <= 0).sum())} missing entries. Use init='auto', 'csf2' or 'pr'.")
+        return solve(seq, kind).points_3d
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
     return solve_rank3.__wrapped__(seq, Rank3Params()).points_3d

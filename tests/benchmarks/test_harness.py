@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, pr_sweep, table1
+from benchmarks import classic, empnd_starts, pr_sweep, table1
 from benchmarks.common import Interrupted, run_cells
 from nrsfm.datasets.synthetic import lowrank_sequence
 
@@ -113,6 +113,25 @@ def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
     assert pr_sweep.main(["--root", str(tmp_path / "nowhere")]) == 2
     assert pr_sweep.main(["--root", str(tmp_path / "data"), "--sequences", "nope"]) == 2
     assert "--sequences: expected names among ['tiny'], got nope" in capsys.readouterr().err
+
+
+def test_empnd_starts_on_a_small_file(tmp_path, capsys):
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    seq = lowrank_sequence(40, 12, 2, seed=1)
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    out = tmp_path / "out"
+    assert empnd_starts.main(["--root", str(tmp_path / "data"), "--out", str(out), "--starts", "auto,spm"]) == 0
+    text = capsys.readouterr().out
+    assert "| sequence | auto: e3D (cost) | spm: e3D (cost) | mean(auto,spm): e3D | best published |" in text
+    rows = json.loads((out / "empnd_starts.json").read_text())["rows"]
+    assert [r["start"] for r in rows] == ["auto", "spm", "mean(auto,spm)"]
+    assert all(r["status"] == "ok" and r["e3d_camera"] < 1e-3 for r in rows)
+    # a start fitted by a global orthogonal matrix (with a reflection) is the same shape
+    turned = empnd_starts.fit_to(-seq.points_3d @ np.linalg.qr(np.arange(9.0).reshape(3, 3) + 1)[0], seq.points_3d)
+    np.testing.assert_allclose(turned, seq.points_3d - seq.points_3d.mean(axis=1, keepdims=True), atol=1e-9)
+    assert empnd_starts.main(["--root", str(tmp_path / "data"), "--starts", "auto,c3dpo"]) == 2
+    assert "--starts: expected names among auto, factorisation" in capsys.readouterr().err
 
 
 _CALLS: list[int] = []
