@@ -3,6 +3,7 @@
     nrsfm info FILE [--json]
     nrsfm convert IN OUT.npz [--force]
     nrsfm solve FILE --method NAME [--set K=V ...] [--out OUT.npz] [--plot OUT.png] [--json] [--force]
+                [--progress auto|always|never]
     nrsfm methods
     nrsfm synth KIND OUT.npz [--frames F] [--points P] [--basis K] [--noise S] [--missing M] [--seed N]
     nrsfm demo [--out DIR]
@@ -56,6 +57,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plot", help="write a PNG of input, reconstruction and ground truth")
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.add_argument("--force", action="store_true", help="overwrite existing output files")
+    s.add_argument("--progress", choices=["auto", "always", "never"], default="auto",
+                   help="progress bars of the solver's iterations on stderr (auto: when stderr is a terminal)")
 
     sub.add_parser("methods", help="list the registered solvers")
 
@@ -157,7 +160,14 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         raise ValueError(f"--plot: expected a file name ending in .png, got {args.plot!r}")
     _check_outputs([args.out, args.plot], args.force)
     seq = load_sequence(args.file)
-    rec = spec.solve(seq, params)
+    show = args.progress == "always" or (args.progress == "auto" and sys.stderr.isatty())
+    if show:
+        from nrsfm.progress import ProgressBars, listen
+
+        with ProgressBars(sys.stderr) as bars, listen(bars):
+            rec = spec.solve(seq, params)
+    else:
+        rec = spec.solve(seq, params)
     metrics: dict[str, float] = {}
     if seq.points_3d is not None:
         metrics = classic_metrics(rec.points_3d, seq.points_3d, pred_rotations=rec.rotations,

@@ -99,6 +99,7 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
 from nrsfm.errors import SolverError, ValidationError
+from nrsfm import progress
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import (Reconstruction, complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank,
@@ -414,6 +415,7 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
         x, (pinv, s, r) = new_x, new
         delta = max(delta / 100, 1e-20)
         history.append(rmse)
+        progress.report("csf2", "shape", it, max_iter, rmse=rmse)
         if it > 1 and history[-3] - history[-1] < tol_abs:
             converged = True
             break
@@ -479,10 +481,15 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
                 race = _RoundRace(params.race_margin, params.race_from) if len(counts) == 2 else None
                 # the two runs side by side on two threads: LAPACK releases the GIL, BLAS is on one thread each;
                 # the slower one (more X/S iterations per round) stops when it falls behind (_RoundRace)
+                listener = progress.current()  # the lead run reports its rounds to this thread's listener
+
+                def run(n_als: int, role: str):
+                    with progress.listen(listener if role == "lead" else None):
+                        return _occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge,
+                                                 race, role)
+
                 with ThreadPoolExecutor(len(counts)) as pool:
-                    runs = dict(zip(counts, pool.map(lambda n_als, role: _occlusion_rounds(
-                        w, mask, omega, *start, params.camera_rounds, n_als, params.ridge, race, role),
-                        counts, ("lead", "follow"))))
+                    runs = dict(zip(counts, pool.map(run, counts, ("lead", "follow"))))
                 rot, x, basis, rmse, _ = min((runs[n] for n in order), key=lambda run: run[3])
                 rounds_run = {str(n): runs[n][4] for n in order}
     shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame
@@ -605,6 +612,7 @@ def _occlusion_rounds(w: np.ndarray, mask: np.ndarray, omega: np.ndarray, rot: n
             x, basis, rmse = _refine_masked(w - t.reshape(2 * n_frames, 1), mask, rot[:, :2], omega, x, n_als, ridge)
             if rmse < lowest[3]:
                 lowest = (rot, x, basis, rmse)
+            progress.report("csf2", "camera rounds", r, n_rounds, rmse=rmse)
             if r % 10 == 0:
                 if race is not None and role == "lead":
                     race.post(r, rmse)

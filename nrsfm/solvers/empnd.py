@@ -92,6 +92,7 @@ import torch
 from nrsfm.device import pick_device
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.procrustes import proper_procrustes, skew
+from nrsfm.progress import report
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, register, require_visible_points
 from nrsfm.solvers.csf2 import csf2_start, fits_csf2
@@ -427,6 +428,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
             lam = _precision_from(chol_b, nb)
             previous, cost = cost, (2.0 * j0 + np.log(var) * n_obs / n) / cdim
             st["history"].append(cost)
+            report("empnd", "EM", st["it"], params.max_iter, cost=cost)
             if previous - cost < params.tol:
                 st["converged"] = True
                 break
@@ -438,6 +440,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     def timed_start(kind: str) -> np.ndarray:
         nonlocal start_s
         t0 = time.perf_counter()
+        report("empnd", f"{kind} start", 0)
         shapes = _start_shapes(seq, params, kind)
         start_s += time.perf_counter() - t0
         return shapes

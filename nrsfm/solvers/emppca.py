@@ -39,6 +39,7 @@ import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
+from nrsfm.progress import report
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
 
@@ -203,6 +204,7 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
         extra = np.einsum("fij,fjk,fik->", r2, t_mat, r2)
         s2 = max(((res**2).sum() + extra) / (2 * vis_sum), 1e-14 * scale**2)
         recon = complete_rotation(r2) @ es
+        report("emppca", "EM", it, params.max_iter, noise_std=np.sqrt(s2) / scale)
         if prev is not None:
             change = np.linalg.norm(recon - prev) / max(np.linalg.norm(recon), 1e-300)
             if change < params.tol:

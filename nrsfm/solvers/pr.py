@@ -57,6 +57,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
+from nrsfm.progress import report
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, complete_lowrank, register, require_visible_points, visible_rank
 
@@ -158,7 +159,7 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     free_xy = ~visible  # (F, P)
     n_free_xy = int(free_xy.sum())
     x0 = np.concatenate([start[..., 2].ravel(), start[..., :2][free_xy].ravel()])
-    state = {"rot": None, "evals": 0}
+    state = {"rot": None, "evals": 0, "steps": 0}
     s_max = float(np.linalg.svd(start.reshape(n_frames, -1), compute_uv=False)[0])
 
     def unpack(v: np.ndarray) -> np.ndarray:
@@ -192,9 +193,14 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     v = x0
     iterations = 0
     converged = True
+    def step_done(intermediate_result) -> None:  # scipy passes the iterate's OptimizeResult by this name
+        state["steps"] += 1
+        report("pr", "L-BFGS", state["steps"], params.max_iter * len(offsets), cost=intermediate_result.fun)
+
     with threadpool_limits(limits=1, user_api="blas"):  # see "Threads" in the module docstring
         for offset in offsets:
             res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
+                                          callback=step_done,
                                           options={"maxiter": params.max_iter, "ftol": params.tol, "gtol": 1e-12})
             v = res.x
             iterations += int(res.nit)

@@ -51,6 +51,7 @@ import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
+from nrsfm.progress import report
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import Reconstruction, power_of_two_unit, register
 
@@ -272,6 +273,7 @@ def shape_admm(w: np.ndarray, rot: np.ndarray, *, tol: float = 1e-4, max_iter: i
         u = u + x_hat - y
         primal = np.linalg.norm(s_z - y) / max(np.linalg.norm(y), scale)
         dual = np.linalg.norm(np.einsum("fip,fip->fp", r3, y - y_old)) / max(np.linalg.norm(u), 1e-300)
+        report("spm", "shape ADMM", it, max_iter, primal=primal, dual=dual)
         if primal < tol and dual < tol:
             break
         if it % 10 == 0 and (primal > 10 * dual or dual > 10 * primal):
