@@ -101,6 +101,16 @@ def test_lowrank_fit_finds_the_rank_with_missing_entries(rng):
     assert lowrank_fit(w, mask, 6, start=factor)[0] < 1e-6  # warm-started from the rank-3 fit
 
 
+def test_auto_k_leaves_the_factorisation_short_of_w():
+    """3K = 2F makes the rank-3K factorisation all of W, which leaves the cameras free: three frames of a K = 2
+    sequence gave CSF2 e3D 17.0 with K = 2."""
+    from nrsfm.solvers.csf2 import auto_k
+
+    assert auto_k(lowrank_sequence(3, 15, 2, seed=1).measurement_matrix()) == 1
+    assert auto_k(lowrank_sequence(4, 15, 2, seed=1).measurement_matrix()) == 2
+    assert auto_k(lowrank_sequence(40, 9, 2, seed=1).measurement_matrix()) == 2  # 3K < P as well
+
+
 def test_auto_k_with_missing_points_matches_complete_tracks():
     """Nearly rigid tracks (the face, rank 7) with 20% missing get the complete tracks' K, not the cap (8)."""
     from nrsfm.datasets.synthetic import face_sequences

@@ -73,7 +73,10 @@ Without it, a noise-free 60 x 20 sequence gave e3D .98 with an RMS of 1e5 and
 Automatic K and d (``K=0``/``d=0``; the authors always set them by hand):
 K = min(8, ceil(r / 3) + 1) with r the numerical rank of the centred W (so an
 exactly low-rank W gets one basis shape more than it strictly needs: the
-shark's rank-5 W needs K = 3, and K = 2 fails), capped by 3K <= min(2F, P);
+shark's rank-5 W needs K = 3, and K = 2 fails), capped by 3K < min(2F, P)
+(at 3K = 2F the rank-3K factorisation is all of W and leaves the cameras
+free: three frames of a K = 2 sequence gave e3D 17.0 with K = 2, 2.8 with
+K = 1; EM-PPCA from that start 12.1 and 3.7);
 with missing points r is the lowest rank whose fit to the visible entries
 (variable projection) leaves less than 1e-6 of their RMS (:func:`auto_k`: on
 the CMU files and the stand-ins, the complete tracks' K; the same fit serves
@@ -219,14 +222,14 @@ def dct_weighted_gram_blocks(weights: np.ndarray, d: int) -> np.ndarray:
 def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
            max_frames: int = 300, max_points: int = 60, fit: tuple[int, np.ndarray | None] | None = None) -> int:
     """CSF2's automatic K for a `(2F, P)` W: ``min(k_max, ceil(r / 3) + 1)`` with ``r`` the numerical rank of the
-    centred W (singular values above ``rel_tol`` times the largest), and 3K <= min(2F, P).
+    centred W (singular values above ``rel_tol`` times the largest), and 3K < min(2F, P) (module docstring).
 
     With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less
     than ``rel_tol`` of their RMS (:func:`~nrsfm.solvers.base.visible_rank`, on at most ``max_frames`` frames and
     ``max_points`` points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); the cap when
     none fits.
     """
-    cap = max(1, min(k_max, min(w.shape) // 3))
+    cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
     if mask is not None and not mask.all():
         rank = (fit or visible_rank(w, mask, auto_k_max_rank(w, k_max), rel_tol=rel_tol, max_frames=max_frames,
                                     max_points=max_points))[0]
