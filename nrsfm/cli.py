@@ -4,7 +4,7 @@
     nrsfm convert IN OUT.npz [--force]
     nrsfm solve FILE --method NAME [--set K=V ...] [--out OUT.npz] [--plot OUT.png] [--json] [--force]
                 [--progress auto|always|never]
-    nrsfm methods
+    nrsfm methods [NAME]
     nrsfm synth KIND OUT.npz [--frames F] [--points P] [--basis K] [--noise S] [--missing M] [--seed N]
     nrsfm demo [--out DIR]
 
@@ -60,7 +60,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--progress", choices=["auto", "always", "never"], default="auto",
                    help="progress bars of the solver's iterations on stderr (auto: when stderr is a terminal)")
 
-    sub.add_parser("methods", help="list the registered solvers")
+    s = sub.add_parser("methods", help="list the registered solvers, or one solver's parameters")
+    s.add_argument("name", nargs="?", help="a solver: list its parameters (for --set) with their defaults")
 
     s = sub.add_parser("synth", help="write a synthetic sequence (.npz)")
     s.add_argument("kind", choices=["rigid", "lowrank", "human", "face", "surface"])
@@ -205,13 +206,26 @@ def _cmd_solve(args: argparse.Namespace) -> int:
 
 
 def _cmd_methods(args: argparse.Namespace) -> int:
+    import dataclasses
+    import inspect
+    import typing
+
     from nrsfm.solvers import available_solvers, get_solver
 
-    for name in available_solvers():
-        spec = get_solver(name)
+    for name in available_solvers() if args.name is None else [args.name]:
+        spec = get_solver(name)  # an unknown name: a clear error listing the known ones
         flags = [f for f, on in (("missing points", spec.handles_missing),
                                  ("perspective", spec.handles_perspective)) if on]
         print(f"{name:10s} {spec.description}{' [handles ' + ', '.join(flags) + ']' if flags else ''}")
+    if args.name is not None:
+        hints = typing.get_type_hints(spec.params)
+        print(f"\nparameters ({spec.params.__name__}; nrsfm solve FILE -m {spec.name} --set NAME=VALUE):")
+        for f in dataclasses.fields(spec.params):
+            kind = getattr(hints[f.name], "__name__", str(hints[f.name]))
+            print(f"  {f.name} ({kind}) = {f.default!r}")
+        doc = inspect.cleandoc(spec.params.__doc__ or "")
+        if "Attributes:" in doc:
+            print("\n" + doc[doc.index("Attributes:"):])
     return 0
 
 

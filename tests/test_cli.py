@@ -96,6 +96,10 @@ def test_info_json_and_synth(tmp_path, capsys):
 def test_methods_and_demo(tmp_path, capsys):
     code, out, _ = _run(capsys, "methods")
     assert code == 0 and "rank3" in out
+    code, out, _ = _run(capsys, "methods", "csf2")  # one solver: its parameters for --set, with defaults and docs
+    assert code == 0 and "--set NAME=VALUE" in out and "  K (int) = 0" in out and "residual_start (bool) = True" in out
+    assert "K: number of basis shapes" in out and "spm " not in out
+    _one_line_error(*_run(capsys, "methods", "nope")[::2], "method: expected one of")
     code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"), "--methods", "rank3")
     assert code == 0, err
     assert "| rigid | 200 x 30 | rank3 |" in out
