@@ -86,12 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     starts = tuple(s.strip() for s in args.starts.split(",") if s.strip())
-    bad = [s for s in starts if s not in INITS]
-    if not starts or bad:
-        print(f"empnd_starts: error: --starts: expected names among {', '.join(INITS)}, got {args.starts!r}",
-              file=sys.stderr)
-        return 2
     try:
+        if not starts or any(s not in INITS for s in starts):
+            raise ValueError(f"--starts: expected names among {', '.join(INITS)}, got {args.starts!r}")
         folder, files = benchmark_sequences(args.root, args.sequences, "empnd_starts")
     except (NRSfMError, ValueError) as exc:
         print(f"empnd_starts: error: {exc}", file=sys.stderr)

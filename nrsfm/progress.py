@@ -5,7 +5,7 @@
         rec = nrsfm.solve(seq, "empnd")
 
 ``nrsfm solve`` listens with a progress bar on stderr when stderr is a
-terminal (``--no-progress`` hides it). The listener lives in a context
+terminal (``--progress always|never`` overrides that). The listener lives in a context
 variable: it sees the reports of the thread (and asyncio task) that installed
 it, not those of worker threads or processes, and costs one lookup per report
 when nobody listens.

@@ -101,8 +101,8 @@ from numpy.lib.stride_tricks import as_strided
 from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
-from nrsfm.errors import SolverError, ValidationError
 from nrsfm import progress
+from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.base import (Reconstruction, complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank,
@@ -486,13 +486,13 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
                 # the slower one (more X/S iterations per round) stops when it falls behind (_RoundRace)
                 listener = progress.current()  # the lead run reports its rounds to this thread's listener
 
-                def run(n_als: int, role: str):
+                def rounds(n_als: int, role: str):
                     with progress.listen(listener if role == "lead" else None):
                         return _occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge,
                                                  race, role)
 
                 with ThreadPoolExecutor(len(counts)) as pool:
-                    runs = dict(zip(counts, pool.map(run, counts, ("lead", "follow"))))
+                    runs = dict(zip(counts, pool.map(rounds, counts, ("lead", "follow"))))
                 rot, x, basis, rmse, _ = min((runs[n] for n in order), key=lambda run: run[3])
                 rounds_run = {str(n): runs[n][4] for n in order}
     shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame

@@ -12,6 +12,14 @@ from benchmarks.common import Interrupted, run_cells
 from nrsfm.datasets.synthetic import lowrank_sequence
 
 
+def _tiny_cmu_file(tmp_path, seq):
+    """``seq`` written as ``tmp_path/data/nrsfm/tiny.mat`` in the PND layout (a CMU folder of one file)."""
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    return seq
+
+
 def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
     out = tmp_path / "t1"
@@ -37,10 +45,7 @@ def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
 
 
 def test_classic_on_small_files(tmp_path, capsys):
-    root = tmp_path / "data" / "nrsfm"
-    root.mkdir(parents=True)
-    seq = lowrank_sequence(20, 10, 1, seed=0)
-    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(20, 10, 1, seed=0))
     out = tmp_path / "out"
     assert classic.main(["--root", str(tmp_path / "data"), "--methods", "rank3,pr", "--long", "0",
                          "--out", str(out)]) == 0
@@ -98,10 +103,7 @@ def test_speed_empnd_times_each_device_and_refuses_bad_arguments(tmp_path, capsy
 
 def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(pr_sweep, "CONFIGS", [(label, {**cfg, "max_iter": 50}) for label, cfg in pr_sweep.CONFIGS])
-    root = tmp_path / "data" / "nrsfm"
-    root.mkdir(parents=True)
-    seq = lowrank_sequence(30, 10, 2, seed=0)
-    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 10, 2, seed=0))
     out = tmp_path / "out"
     assert pr_sweep.main(["--root", str(tmp_path / "data"), "--out", str(out)]) == 0
     text = capsys.readouterr().out
@@ -116,10 +118,7 @@ def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
 
 
 def test_empnd_starts_on_a_small_file(tmp_path, capsys):
-    root = tmp_path / "data" / "nrsfm"
-    root.mkdir(parents=True)
-    seq = lowrank_sequence(40, 12, 2, seed=1)
-    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(40, 12, 2, seed=1))
     out = tmp_path / "out"
     assert empnd_starts.main(["--root", str(tmp_path / "data"), "--out", str(out), "--starts", "auto,spm"]) == 0
     text = capsys.readouterr().out
@@ -169,10 +168,7 @@ def test_run_cells_saves_each_cell_and_resumes_after_an_interruption(tmp_path):
 
 
 def test_classic_reuses_saved_cells_unless_the_file_changes_or_rerun(tmp_path, capsys, caplog):
-    root = tmp_path / "data" / "nrsfm"
-    root.mkdir(parents=True)
-    seq = lowrank_sequence(30, 10, 2, seed=0)
-    scipy.io.savemat(str(root / "tiny.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 10, 2, seed=0))
     out = tmp_path / "out"
     argv = ["--root", str(tmp_path / "data"), "--methods", "rank3,csf2", "--long", "0", "--out", str(out),
             "--no-progress"]
@@ -188,7 +184,8 @@ def test_classic_reuses_saved_cells_unless_the_file_changes_or_rerun(tmp_path, c
     assert "2 of 2 cells were reused from an earlier run" in (out / "classic.md").read_text()
     assert classic.main(argv + ["--methods", "rank3,csf2,pr"]) == 0  # only the new method is solved
     assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 2
-    scipy.io.savemat(str(root / "tiny.mat"), {"X": 2 * seq.points_3d.transpose(2, 1, 0)})  # the file changes
+    # the file changes
+    scipy.io.savemat(str(tmp_path / "data" / "nrsfm" / "tiny.mat"), {"X": 2 * seq.points_3d.transpose(2, 1, 0)})
     assert classic.main(argv) == 0
     assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 0
     assert classic.main(argv + ["--rerun"]) == 0
