@@ -397,6 +397,8 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
     history = [float(np.sqrt((r**2).mean()))]
     tol_abs = tol * float(np.sqrt((wc**2).mean()))
     delta, it, converged = 1e-4, 0, False
+    if d <= k:  # X's columns span every trajectory the basis has: nothing to fit
+        return x, s.reshape(k, 3, n_points), 0, True, history[-1]
     for it in range(1, max_iter + 1):
         # gradient of 1/2 ||R||^2 in X: -sum_i (Bnr^T R S^T)[(a, i), (k, i)]; Gauss-Newton matrix
         # H[(a,k),(b,l)] = sum_ij YY[(a,i),(b,j)] (S S^T)[(k,i),(l,j)], YY = Bnr^T (I - M M^+) Bnr
@@ -404,10 +406,21 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
         g = -np.einsum("aiki->ak", zz).ravel()
         yy = (btb - kron_i3(btb, x) @ (pinv @ bnr)).reshape(d, 3, d, 3)  # Bnr^T M = Bnr^T Bnr (X kron I3)
         ss = (s @ s.T).reshape(k, 3, k, 3)
-        h = np.tensordot(yy, ss, axes=([1, 3], [1, 3])).transpose(0, 2, 1, 3).reshape(d * k, d * k)
+        # X is defined up to an invertible k x k factor (X -> X A keeps the column space of M), so H is singular
+        # along X A; the steps orthogonal to those, X_perp C with X_perp `(d, d - k)` spanning the complement of
+        # X's columns, give the same damped step as the minimum-norm solve of the full system (g has no
+        # component along X A) with a positive definite `((d - k) k)` system: drink 0.3 s -> 0.02 s a step
+        perp = np.linalg.qr(x, mode="complete")[0][:, k:]
+        yy_perp = np.einsum("ab,aicj,cm->bimj", perp, yy, perp, optimize=True)  # (d - k, 3, d - k, 3)
+        n_red = (d - k) * k
+        h_red = np.tensordot(yy_perp, ss, axes=([1, 3], [1, 3])).transpose(0, 2, 1, 3).reshape(n_red, n_red)
+        g_red = (perp.T @ g.reshape(d, k)).ravel()
         while True:
-            step = np.linalg.lstsq(h + delta * np.eye(d * k), g, rcond=None)[0]
-            new_x, _ = np.linalg.qr(x - step.reshape(d, k))  # X is defined up to an invertible k x k factor
+            try:
+                c_red = cho_solve(cho_factor(h_red + delta * np.eye(n_red)), g_red)
+            except np.linalg.LinAlgError:  # not positive definite in floating point: the minimum-norm solution
+                c_red = np.linalg.lstsq(h_red + delta * np.eye(n_red), g_red, rcond=None)[0]
+            new_x, _ = np.linalg.qr(x - perp @ c_red.reshape(d - k, k))
             new = factors(new_x)
             rmse = float(np.sqrt((new[2]**2).mean()))
             if rmse < history[-1]:
