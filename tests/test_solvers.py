@@ -716,6 +716,8 @@ def _degenerate(case: str) -> Sequence:
         return Sequence(points_2d=pts[..., :2], points_3d=pts)
     if case == "three_frames":  # 6 rows: a rank-3K factorisation with K = 2 fits W exactly
         return lowrank_sequence(3, 10, 2, seed=0)
+    if case == "three_frames_four_points":  # EM-PND's factorisation start raised numpy's LinAlgError here
+        return lowrank_sequence(3, 4, 2, seed=304)
     if case == "static_camera":  # one frame repeated: no 3D information at all
         return Sequence(points_2d=np.repeat(lowrank_sequence(10, 10, 1, seed=0).points_2d[:1], 10, axis=0))
     vis = np.ones((30, 12))
@@ -726,8 +728,8 @@ def _degenerate(case: str) -> Sequence:
     return lowrank_sequence(30, 12, 2, seed=0).replace(visibility=vis)
 
 
-@pytest.mark.parametrize("case", ["rigid", "planar", "three_frames", "static_camera", "frame_all_missing",
-                                  "point_never_visible"])
+@pytest.mark.parametrize("case", ["rigid", "planar", "three_frames", "three_frames_four_points", "static_camera",
+                                  "frame_all_missing", "point_never_visible"])
 def test_every_solver_gives_finite_shapes_or_a_clear_error_on_degenerate_input(case):
     """The issue's degenerate inputs, for every registered solver: finite shapes and cameras, or an NRSfMError
     whose message names the solver (never NaN, never a bare error from a library underneath); a rigid sequence

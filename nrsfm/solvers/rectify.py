@@ -215,7 +215,14 @@ def factorisation_start(w: np.ndarray, energy: float = 1 - 1e-5) -> np.ndarray:
     axis = rot[:, :, 2]  # (F, 3) viewing directions
     proj = np.einsum("fi,fip->fp", axis, y - y.mean(axis=0))
     proj -= proj.mean(axis=1, keepdims=True)
-    # depths minimising the trace of the sample covariance of y_f + axis_f z_f^T (closed form)
-    z = axis @ np.linalg.solve(axis.T @ axis - n * np.eye(3), axis.T @ proj) - proj  # (F, P)
+    # depths minimising the trace of the sample covariance of y_f + axis_f z_f^T (closed form); singular when every
+    # viewing direction is the same (a tiny sequence whose rectification collapsed: 3 x 4 points, K = 2), where the
+    # minimum-norm solution leaves that direction's depth at zero
+    lhs, rhs = axis.T @ axis - n * np.eye(3), axis.T @ proj
+    try:
+        coef = np.linalg.solve(lhs, rhs)
+    except np.linalg.LinAlgError:
+        coef = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    z = axis @ coef - proj  # (F, P)
     y = y + axis[:, :, None] * z[:, None, :]
     return np.einsum("fij,fip->fpj", rot, y) / s[:, None, None] * unit
