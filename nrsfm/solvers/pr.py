@@ -193,6 +193,7 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     v = x0
     iterations = 0
     converged = True
+
     def step_done(intermediate_result) -> None:  # scipy passes the iterate's OptimizeResult by this name
         state["steps"] += 1
         report("pr", "L-BFGS", state["steps"], params.max_iter * len(offsets), cost=intermediate_result.fun)
