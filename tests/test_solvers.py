@@ -461,6 +461,55 @@ def test_spm_sign_resolution_does_not_use_temporal_order():
     np.testing.assert_allclose(fixed, truth, atol=1e-9)
 
 
+# ------------------------------------------------------------------ consensus
+def test_consensus_recovers_a_noise_free_low_rank_sequence_and_says_what_it_ran():
+    seq = lowrank_sequence(60, 15, 2, seed=1)
+    rec = solve(seq, "consensus")
+    assert e3d(rec.points_3d, seq.points_3d) < 1e-3
+    assert rec.info["methods"] == ["empnd", "pr"] and rec.info["weights"] == [0.85, 0.15]
+    assert rec.iterations == sum(rec.info["component_iterations"]) and np.isfinite(rec.rotations).all()
+    missing = lowrank_sequence(60, 15, 2, seed=1, missing=0.2)
+    assert e3d(solve(missing, "consensus").points_3d, missing.points_3d) < 0.02
+
+
+def test_consensus_average_undoes_depth_flips_per_frame_and_weights_the_shapes():
+    from nrsfm.solvers import Reconstruction, average_reconstructions
+    from nrsfm.geometry import complete_rotation
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(6, 9, 3))
+    x -= x.mean(axis=1, keepdims=True)
+    rots = complete_rotation(np.linalg.qr(rng.normal(size=(6, 3, 3)))[0][:, :2])
+    delta = np.zeros_like(x)
+    delta[..., 2] = 0.01 * rng.normal(size=(6, 9))  # a depth change small enough to keep the signs
+    delta -= delta.mean(axis=1, keepdims=True)
+    flip = np.array([1.0, 1.0, -1.0])
+    other, other_rots = x + delta, rots.copy()
+    other[[1, 4]] *= flip  # two frames reflected in depth, their cameras D R D
+    other_rots[[1, 4]] = rots[[1, 4]] * flip[:, None] * flip[None, :]
+    recs = [Reconstruction(x + 5.0, rots, "a"), Reconstruction(other, other_rots, "b")]
+    shapes, rotations, flipped = average_reconstructions(recs, [0.75, 0.25])
+    assert flipped == 2
+    np.testing.assert_allclose(shapes, x + 0.25 * delta, atol=1e-12)
+    np.testing.assert_allclose(rotations, rots, atol=1e-12)
+    assert average_reconstructions([recs[0], Reconstruction(x, None, "c")], [0.5, 0.5])[1] is None
+
+
+def test_consensus_refuses_bad_settings_and_names_itself_in_component_errors():
+    from nrsfm.solvers import ConsensusParams
+
+    with pytest.raises(ValidationError, match="two or more registered solvers"):
+        ConsensusParams(methods="empnd")
+    with pytest.raises(ValidationError, match="method: expected one of"):
+        ConsensusParams(methods="empnd,nope")
+    with pytest.raises(ValidationError, match="expected 2 non-negative numbers"):
+        ConsensusParams(weights="1,-1")
+    with pytest.raises(ValidationError, match="comma-separated numbers"):
+        ConsensusParams(weights="a,b")
+    with pytest.raises(SolverError, match="^consensus: spm: expected complete tracks"):
+        solve(lowrank_sequence(30, 10, 2, seed=0, missing=0.1), "consensus", methods="empnd,spm", weights="1,1")
+
+
 # ------------------------------------------------------------------ EM-PND (PND2) and EM-PPCA
 def test_empnd_recovers_a_noise_free_low_rank_sequence():
     seq = lowrank_sequence(200, 30, 3, seed=0)
@@ -777,7 +826,7 @@ def test_every_solver_refuses_three_points():
             solve(seq, name)
 
 
-@pytest.mark.parametrize("name", ["rank3", "csf2", "spm", "pr", "empnd", "emppca"])
+@pytest.mark.parametrize("name", ["rank3", "csf2", "spm", "pr", "empnd", "emppca", "consensus"])
 def test_solvers_do_not_depend_on_the_units_of_the_tracks(name):
     """The same noise-free sequence in units 1e5 and 1e-7 times smaller or larger: the same e3D (CSF2 gave .98
     at 1e5 and EM-PPCA, which starts from it, .86, against .044 and .0000 at 1, before its tracks were

@@ -14,6 +14,7 @@ from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
 from nrsfm.solvers.spm import SPMParams, solve_spm
 from nrsfm.solvers.empnd import EMPNDParams, solve_empnd
 from nrsfm.solvers.emppca import EMPPCAParams, solve_emppca
+from nrsfm.solvers.consensus import ConsensusParams, average_reconstructions, solve_consensus
 
 
 def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstruction:
@@ -26,4 +27,4 @@ def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstructio
 
 __all__ = ["Reconstruction", "SolverSpec", "available_solvers", "get_solver", "params_from_strings", "register",
            "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2", "SPMParams", "solve_spm", "EMPNDParams", "solve_empnd",
-           "EMPPCAParams", "solve_emppca"]
+           "EMPPCAParams", "solve_emppca", "ConsensusParams", "average_reconstructions", "solve_consensus"]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, empnd_starts, pr_sweep, table1
+from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, table1
 from benchmarks.common import Interrupted, run_cells
 from nrsfm.datasets.synthetic import lowrank_sequence
 
@@ -131,6 +131,31 @@ def test_empnd_starts_on_a_small_file(tmp_path, capsys):
     np.testing.assert_allclose(turned, seq.points_3d - seq.points_3d.mean(axis=1, keepdims=True), atol=1e-9)
     assert empnd_starts.main(["--root", str(tmp_path / "data"), "--starts", "auto,c3dpo"]) == 2
     assert "--starts: expected names among auto, factorisation" in capsys.readouterr().err
+
+
+def test_consensus_weight_leaves_each_file_out(tmp_path, capsys):
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    for i in (1, 2):
+        seq = lowrank_sequence(40, 12, 2, seed=i, noise=0.01)
+        scipy.io.savemat(str(root / f"tiny{i}.mat"), {"X": seq.points_3d.transpose(2, 1, 0)})
+    out = tmp_path / "out"
+    args = ["--root", str(tmp_path / "data"), "--out", str(out), "--grid", "0.5,1", "--no-progress"]
+    assert consensus_weight.main(args) == 0
+    text = capsys.readouterr().out
+    assert "| sequence | a = 0.5 | a = 1 | held-out a | held-out e3D | best published |" in text
+    data = json.loads((out / "consensus_weight.json").read_text())
+    assert [r["sequence"] for r in data["rows"]] == ["tiny1", "tiny2"]
+    for r in data["rows"]:
+        assert r["e3d_a1"] == pytest.approx(r["e3d_first_alone"], rel=1e-9)  # a = 1 is EM-PND alone
+        assert r["held_out_weight"] in (0.5, 1.0)
+    # the choice: the weight with the lowest geometric mean of e3D(a) / e3D(1)
+    fake = [{"e3d": [1.0, 0.9, 1.0]}, {"e3d": [4.0, 2.2, 2.0]}, {"e3d": [0.5, 0.45, 0.5]}]
+    assert consensus_weight.choose_weight(fake, [0.5, 0.75, 1.0]) == 1
+    assert consensus_weight.choose_weight(fake[1:2], [0.5, 0.75, 1.0]) == 2
+    assert consensus_weight.parse_grid("0.8:1:0.1") == [0.8, 0.9, 1.0]
+    assert consensus_weight.main(args[:4] + ["--grid", "0.2,0.5"]) == 2
+    assert "--grid: expected weights in [0, 1] including 1" in capsys.readouterr().err
 
 
 _CALLS: list[int] = []
