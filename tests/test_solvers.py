@@ -493,6 +493,12 @@ def test_consensus_average_undoes_depth_flips_per_frame_and_weights_the_shapes()
     np.testing.assert_allclose(shapes, x + 0.25 * delta, atol=1e-12)
     np.testing.assert_allclose(rotations, rots, atol=1e-12)
     assert average_reconstructions([recs[0], Reconstruction(x, None, "c")], [0.5, 0.5])[1] is None
+    # cameras half a turn apart sum to a singular matrix: the projection still gives a proper rotation
+    half_turn = rots @ np.diag([-1.0, -1.0, 1.0])
+    mean_rots = average_reconstructions([recs[0], Reconstruction(x, half_turn, "d")], [0.5, 0.5])[1]
+    np.testing.assert_allclose(mean_rots @ mean_rots.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (6, 3, 3)),
+                               atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(mean_rots), 1.0, atol=1e-9)
 
 
 def test_consensus_refuses_bad_settings_and_names_itself_in_component_errors():

@@ -99,7 +99,7 @@ def average_reconstructions(recs: list[Reconstruction], weights) -> tuple[np.nda
     rotations = None
     if rot_sum is not None:
         u, _, vt = np.linalg.svd(rot_sum)
-        u[:, :, -1] *= np.sign(np.linalg.det(u @ vt))[:, None]
+        u[:, :, -1] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]  # a proper rotation
         rotations = u @ vt
     return shapes, rotations, flipped
 
