@@ -35,10 +35,20 @@ Two regularisers (``regulariser``), the two the PRN paper names (Sec. 3.3):
   the TIP paper's formulation as we first implemented it (yoga .58, drink
   .028).
 
-The CSF2 start runs on the tracks with missing entries filled by a
-rank-3K imputation (CSF2's automatic K; not the slower occlusion-aware CSF2); sequences too small
-for CSF2 (``min(2F, P) < 6``) or where it fails fall back to the rigid start,
-recorded in ``info["init"]``.
+Missing points: their x, y are free variables like the depths. The tracks
+are first completed: exactly where the visible entries are exactly low-rank
+(noise-free tracks), else by a rank-3K imputation (CSF2's automatic K). The
+completion fixes the objective (each frame's centring, the scale and, through
+CSF2's reconstruction of the completed tracks, the log-determinant's
+``delta``). On imputed tracks the free variables then start from CSF2's
+occlusion-aware reconstruction (``start_rounds`` camera rounds; EM-PND's
+start), which fits the visible entries only: the imputation can be far off
+where a point is missing long, and on dance with 20% missing CSF2 on the
+imputed tracks gave e3D 1.23 and PR from it 1.30, against .176 from the
+occlusion-aware start (drink, pickup, yoga and stretch end at the same
+minimum either way; ``benchmarks/RESULTS.md``). Sequences too small for CSF2
+(``min(2F, P) < 6``) or where it fails fall back to the rigid start, recorded
+in ``info["init"]``.
 
 Threads: L-BFGS runs with numpy's BLAS on one thread (``threadpoolctl``);
 torch keeps its own threads. Each evaluation mixes torch's batched `(3, 3)`
@@ -87,6 +97,10 @@ class PRParams:
         impute_rank: rank of the measurement-matrix completion (:func:`~nrsfm.solvers.base.complete_lowrank`) used to
             initialise missing points (0: 3K with CSF2's automatic K, the rank CSF2 imputes with; rank 9
             gave yoga with 20% missing e3D .108 against .0196).
+        start_rounds: with missing points on tracks that are not exactly low-rank, the free variables start
+            from CSF2's occlusion-aware reconstruction cut to this many camera rounds (module docstring,
+            "Missing points"); 0: from CSF2 on the imputed tracks (before session 20). On dance with 20%
+            missing, 10% of the imputed entries were off by more than 1.3 times the tracks' RMS.
     """
 
     regulariser: str = "logdet"
@@ -100,6 +114,7 @@ class PRParams:
     max_iter: int = 2000
     tol: float = 1e-10
     impute_rank: int = 0
+    start_rounds: int = 50
 
     def __post_init__(self) -> None:
         if self.regulariser not in REGULARISERS:
@@ -113,6 +128,8 @@ class PRParams:
         if not 0 < self.smoothing_end <= self.smoothing_start < 1:
             raise ValidationError(f"smoothing: expected 0 < smoothing_end <= smoothing_start < 1, got "
                                   f"{self.smoothing_end}, {self.smoothing_start}")
+        if self.start_rounds < 0:
+            raise ValidationError(f"start_rounds: expected >= 0, got {self.start_rounds}")
         if self.stages < 1 or self.max_iter < 1:
             raise ValidationError(f"stages, max_iter: expected >= 1, got {self.stages}, {self.max_iter}")
 
@@ -150,17 +167,26 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
                              init_K=params.init_K or k)
         w, completion = complete_lowrank(w, mask, params.impute_rank, fit)
     p2 = w.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
-    p2 = p2 - p2.mean(axis=1, keepdims=True)
+    centre = p2.mean(axis=1, keepdims=True)  # (F, 1, 2)
+    p2 = p2 - centre
     scale = np.sqrt((p2**2).sum() / n_frames)
     if scale <= 0:
         raise SolverError("pr: all points coincide; nothing to reconstruct")
     p2 = p2 / scale
-    start, init_used = _start(p2, params)  # (F, P, 3)
+    start, init_used = _start(p2, params)  # (F, P, 3); its largest singular value sets delta below
+    s_max = float(np.linalg.svd(start.reshape(n_frames, -1), compute_uv=False)[0])
+    if completion == "imputed" and init_used == "csf2" and params.start_rounds > 0:
+        occluded = _occlusion_aware_start(seq, params)  # (F, P, 3) camera frame, data units
+        if occluded is not None:
+            # the same objective (the imputed tracks' centring and scale, delta from the start above); only the
+            # free variables start elsewhere (module docstring, "Missing points")
+            filled = _fill_from_shapes(seq.measurement_matrix(), mask, occluded)
+            xy = (filled.reshape(n_frames, 2, n_points).transpose(0, 2, 1) - centre) / scale
+            z = (occluded[..., 2:] - occluded[..., 2:].mean(axis=1, keepdims=True)) / scale
+            start, init_used = np.concatenate([xy, z], axis=2), "csf2-occlusion"
     free_xy = ~visible  # (F, P)
     n_free_xy = int(free_xy.sum())
-    x0 = np.concatenate([start[..., 2].ravel(), start[..., :2][free_xy].ravel()])
     state = {"rot": None, "evals": 0, "steps": 0}
-    s_max = float(np.linalg.svd(start.reshape(n_frames, -1), compute_uv=False)[0])
 
     def unpack(v: np.ndarray) -> np.ndarray:
         shapes = np.empty((n_frames, n_points, 3))
@@ -190,14 +216,14 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
         offsets = [params.delta_rel * s_max]
     else:
         offsets = list(np.geomspace(params.smoothing_start, params.smoothing_end, params.stages) * s_max)
-    v = x0
-    iterations = 0
-    converged = True
 
     def step_done(intermediate_result) -> None:  # scipy passes the iterate's OptimizeResult by this name
         state["steps"] += 1
         report("pr", "L-BFGS", state["steps"], params.max_iter * len(offsets), cost=intermediate_result.fun)
 
+    v = np.concatenate([start[..., 2].ravel(), start[..., :2][free_xy].ravel()])
+    iterations = 0
+    converged = True
     with threadpool_limits(limits=1, user_api="blas"):  # see "Threads" in the module docstring
         for offset in offsets:
             res = scipy.optimize.minimize(objective, v, args=(float(offset),), jac=True, method="L-BFGS-B",
@@ -218,6 +244,29 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
                                                      "init": init_used, "init_K": params.init_K,
                                                      "impute_rank": params.impute_rank,
                                                      "completion": completion})
+
+
+def _occlusion_aware_start(seq: Sequence, params: PRParams) -> np.ndarray | None:
+    """`(F, P, 3)` camera-frame shapes of CSF2's occlusion-aware form on ``seq`` (K: ``params.init_K``), cut
+    to ``params.start_rounds`` camera rounds of 5 X/S iterations (EM-PND's start with missing points); None
+    where it fails."""
+    from nrsfm.solvers.csf2 import csf2_start
+
+    try:
+        return csf2_start(seq, params.init_K, camera_rounds=params.start_rounds, round_iter=5, round_iter_alt=0)
+    except SolverError as err:
+        log.info("pr: CSF2's occlusion-aware start failed (%s); starting from the imputed tracks", err)
+        return None
+
+
+def _fill_from_shapes(w: np.ndarray, mask: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """`(2F, P)` ``w`` with its missing entries (``mask`` False) replaced by the image coordinates of the
+    `(F, P, 3)` camera-frame ``shapes`` plus each frame's translation, fitted on its visible entries."""
+    n_frames, n_points = shapes.shape[:2]
+    model = shapes[..., :2].transpose(0, 2, 1).reshape(2 * n_frames, n_points)  # (2F, P)
+    count = mask.sum(axis=1, keepdims=True)
+    shift = np.where(mask, w - model, 0.0).sum(axis=1, keepdims=True) / np.maximum(count, 1)
+    return np.where(mask, w, model + shift)
 
 
 def _start(p2: np.ndarray, params: PRParams) -> tuple[np.ndarray, str]:
