@@ -455,6 +455,30 @@ def test_spm_recovers_low_rank_with_camera_jumps():
     assert rec.info["camera_residual"] < 1e-12
 
 
+def test_spm_camera_refinement_lowers_the_nuclear_norm_and_keeps_exact_cameras():
+    from nrsfm.solvers.spm import camera_step, refine_cameras_nuclear, shape_admm
+
+    exact = lowrank_sequence(60, 20, 2, seed=0)
+    rec = solve(exact, "spm", refine_cameras=True)
+    assert rec.info["refined_cameras"] and e3d(rec.points_3d, exact.points_3d) < 1e-3
+    seq = lowrank_sequence(40, 15, 2, seed=1, noise=0.01)
+    wf = (seq.points_2d - seq.points_2d.mean(1, keepdims=True)).transpose(0, 2, 1)  # (F, 2, P)
+    cameras = camera_step(wf.reshape(-1, seq.n_points), 2)
+
+    def nuclear(rot):  # the shape step's minimum for these cameras
+        depth, _ = shape_admm(wf, rot, tol=1e-7)
+        cam = np.concatenate([wf, depth[:, None]], axis=1)
+        return np.linalg.norm(np.einsum("fji,fjp->fip", rot, cam).reshape(len(wf), -1), "nuc"), depth
+
+    before, depth = nuclear(cameras.rotations)
+    rot = refine_cameras_nuclear(wf, cameras, depth, weight=0.0, iters=100)
+    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-10)
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-10)
+    assert nuclear(rot)[0] < before * (1 - 1e-4)  # 29.856 -> 29.842
+    with pytest.raises(ValidationError, match="refine_weight >= 0"):
+        solve(seq, "spm", refine_cameras=True, refine_weight=-1.0)
+
+
 def test_spm_sign_resolution_does_not_use_temporal_order():
     from nrsfm.solvers.spm import resolve_signs
 

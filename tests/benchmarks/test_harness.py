@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, table1
+from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, table1
 from benchmarks.common import Interrupted, run_cells
+from nrsfm import solve
 from nrsfm.datasets.synthetic import lowrank_sequence
+from nrsfm.metrics import e3d
 
 
 def _tiny_cmu_file(tmp_path, seq):
@@ -156,6 +158,29 @@ def test_consensus_weight_leaves_each_file_out(tmp_path, capsys):
     assert consensus_weight.parse_grid("0.8:1:0.1") == [0.8, 0.9, 1.0]
     assert consensus_weight.main(args[:4] + ["--grid", "0.2,0.5"]) == 2
     assert "--grid: expected weights in [0, 1] including 1" in capsys.readouterr().err
+
+
+def test_spm_cameras_scores_each_weight_in_both_frames(tmp_path, capsys):
+    seq = lowrank_sequence(40, 12, 2, seed=1, noise=0.01)
+    rot, cam = seq.camera_rotations, seq.points_3d - seq.points_3d.mean(1, keepdims=True)  # (F, 3, 3), (F, P, 3)
+    world = np.einsum("fji,fpj->fip", rot, cam)  # (F, 3, P): R_f^T X_f
+    root = tmp_path / "data" / "nrsfm"
+    root.mkdir(parents=True)
+    w = seq.points_2d - seq.points_2d.mean(1, keepdims=True)  # the noisy tracks
+    scipy.io.savemat(str(root / "tiny.mat"), {"W": w.transpose(0, 2, 1).reshape(-1, 12),
+                                              "S": world.reshape(-1, 12), "Rs": rot[:, :2].reshape(-1, 3)})
+    out = tmp_path / "out"
+    args = ["--root", str(tmp_path / "data"), "--out", str(out), "--lams", "0,3", "--iters", "30", "--no-progress"]
+    assert spm_cameras.main(args) == 0
+    assert "| sequence | SPM | lam = 0 | lam = 3 | authors |" in capsys.readouterr().out
+    rows = json.loads((out / "spm_cameras.json").read_text())["rows"]
+    assert [r["lam"] for r in rows] == [None, 0.0, 3.0]
+    spm = solve(seq, "spm")
+    assert rows[0]["e3d_camera"] == pytest.approx(e3d(spm.points_3d, seq.points_3d), rel=1e-6)
+    for r in rows:
+        assert 0 <= r["e3d_camera"] < 0.2 and 0 <= r["camera_error"] < 0.2 and r["e3d_object"] >= r["e3d_camera"] / 2
+    assert spm_cameras.main(args[:4] + ["--lams", "-1"]) == 2
+    assert "--lams: expected comma-separated numbers >= 0" in capsys.readouterr().err
 
 
 _CALLS: list[int] = []
