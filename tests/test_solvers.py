@@ -538,6 +538,37 @@ def test_consensus_average_undoes_depth_flips_per_frame_and_weights_the_shapes()
     np.testing.assert_allclose(np.linalg.det(mean_rots), 1.0, atol=1e-9)
 
 
+def test_consensus_computes_the_shared_csf2_start_once(monkeypatch):
+    import nrsfm.solvers.csf2 as csf2
+
+    seq = lowrank_sequence(40, 12, 2, seed=3, noise=0.01, missing=0.2)
+    kw = dict(camera_rounds=3, round_iter=5, round_iter_alt=0)
+    alone = csf2.csf2_start(seq, 0, **kw)
+    k = solve(seq, "csf2", **kw).info["K"]
+    np.testing.assert_array_equal(csf2.csf2_start(seq, k, **kw), alone)  # the automatic K's start is K's
+    calls = []
+    real = csf2.solve_csf2.__wrapped__
+
+    def counted(s, params):
+        calls.append(params)
+        return real(s, params)
+
+    monkeypatch.setattr(csf2.solve_csf2, "__wrapped__", counted)
+    with csf2.shared_starts():
+        first = csf2.csf2_start(seq, 0, **kw)
+        first[:] = 0.0  # a copy: the cached start is untouched
+        np.testing.assert_array_equal(csf2.csf2_start(seq, k, **kw), alone)
+        np.testing.assert_array_equal(csf2.csf2_start(seq, 0, **kw), alone)
+        assert len(calls) == 1
+        csf2.csf2_start(seq, 0, camera_rounds=4, round_iter=5, round_iter_alt=0)  # other settings: solved again
+        assert len(calls) == 2
+    csf2.csf2_start(seq, 0, **kw)  # the cache ended with the block
+    assert len(calls) == 3
+    calls.clear()
+    solve(seq, "consensus")  # EM-PND's start with missing points is PR's occlusion-aware start
+    assert sum(c.camera_rounds == 50 and c.round_iter == 5 for c in calls) == 1
+
+
 def test_consensus_refuses_bad_settings_and_names_itself_in_component_errors():
     from nrsfm.solvers import ConsensusParams
 

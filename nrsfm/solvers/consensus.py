@@ -110,13 +110,16 @@ def solve_consensus(seq: Sequence, params: ConsensusParams) -> Reconstruction:
     """Every method of ``params`` on ``seq`` with its defaults, then :func:`average_reconstructions`. Missing points
     are allowed when every method handles them; a method that refuses the sequence stops the consensus with
     its own message."""
+    from nrsfm.solvers.csf2 import shared_starts
+
     names, weights = params.parsed()
     recs = []
-    for name in names:
-        try:
-            recs.append(get_solver(name).solve(seq))
-        except NRSfMError as exc:
-            raise type(exc)(f"consensus: {exc}") from exc
+    with shared_starts():  # EM-PND and PR start from the same CSF2 reconstruction when points are missing
+        for name in names:
+            try:
+                recs.append(get_solver(name).solve(seq))
+            except NRSfMError as exc:
+                raise type(exc)(f"consensus: {exc}") from exc
     shapes, rotations, flipped = average_reconstructions(recs, weights)
     return Reconstruction(points_3d=shapes, rotations=rotations, method="consensus",
                           iterations=sum(r.iterations for r in recs), converged=all(r.converged for r in recs),

@@ -213,6 +213,7 @@ class Cameras:
         g: `(3K, 3)` the refined corrective triple.
         signs: `(F,)` +1 or -1: frame f's rows are ``signs[f]`` times the orthonormalised ``pi[f] @ g``.
         residual: the orthonormality cost at ``g``.
+        reference: `(F, 3, 3)` CSF2's cameras, which the signs were resolved against.
     """
 
     rotations: np.ndarray
@@ -220,6 +221,17 @@ class Cameras:
     g: np.ndarray
     signs: np.ndarray
     residual: float
+    reference: np.ndarray
+
+
+def rotations_from_triple(pi: np.ndarray, g: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4: the cameras `(F, 3, 3)` of the corrective triple ``g`` `(3K, 3)` for the rank-3K factor ``pi``
+    `(F, 2, 3K)`, each frame's sign resolved against ``reference`` `(F, 3, 3)` (:func:`resolve_signs`), and
+    those signs `(F,)`."""
+    m = pi @ g  # (F, 2, 3)
+    plain = complete_rotation(m / np.linalg.norm(m, axis=2, keepdims=True).mean(axis=1, keepdims=True))
+    rot = resolve_signs(plain, reference)
+    return rot, np.where((rot[:, 0] * plain[:, 0]).sum(axis=1) < 0, -1.0, 1.0)
 
 
 def camera_step(wm: np.ndarray, k: int, trace_weight: float = 1e-4) -> Cameras:
@@ -233,11 +245,9 @@ def camera_step(wm: np.ndarray, k: int, trace_weight: float = 1e-4) -> Cameras:
     evals, evecs = np.linalg.eigh(q)
     g0 = evecs[:, -3:] * np.sqrt(np.maximum(evals[-3:], 1e-12))
     g, residual = refine_triple(pi, g0)
-    m = pi @ g  # (F, 2, 3)
-    plain = complete_rotation(m / np.linalg.norm(m, axis=2, keepdims=True).mean(axis=1, keepdims=True))
-    rot = resolve_signs(plain, complete_rotation(camera_rows(wm)[0]))
-    signs = np.where((rot[:, 0] * plain[:, 0]).sum(axis=1) < 0, -1.0, 1.0)
-    return Cameras(rotations=rot, pi=pi, g=g, signs=signs, residual=residual)
+    reference = complete_rotation(camera_rows(wm)[0])
+    rot, signs = rotations_from_triple(pi, g, reference)
+    return Cameras(rotations=rot, pi=pi, g=g, signs=signs, residual=residual, reference=reference)
 
 
 def refine_cameras_nuclear(wf: np.ndarray, cameras: Cameras, depth: np.ndarray, weight: float = 3.0,

@@ -170,10 +170,17 @@ def test_spm_cameras_scores_each_weight_in_both_frames(tmp_path, capsys):
     scipy.io.savemat(str(root / "tiny.mat"), {"W": w.transpose(0, 2, 1).reshape(-1, 12),
                                               "S": world.reshape(-1, 12), "Rs": rot[:, :2].reshape(-1, 3)})
     out = tmp_path / "out"
-    args = ["--root", str(tmp_path / "data"), "--out", str(out), "--lams", "0,3", "--iters", "30", "--no-progress"]
+    args = ["--root", str(tmp_path / "data"), "--out", str(out), "--lams", "0,3", "--iters", "30", "--no-progress",
+            "--starts", "3"]
     assert spm_cameras.main(args) == 0
-    assert "| sequence | SPM | lam = 0 | lam = 3 | authors |" in capsys.readouterr().out
-    rows = json.loads((out / "spm_cameras.json").read_text())["rows"]
+    printed = capsys.readouterr().out
+    assert "| sequence | SPM | lam = 0 | lam = 3 | authors |" in printed
+    assert "Minima of the camera step's cost from 3 random starts" in printed
+    saved = json.loads((out / "spm_cameras.json").read_text())
+    rows, minima = saved["rows"], saved["minima"]
+    assert sum(m["starts"] for m in minima) == 3 and [m["cost"] for m in minima] == sorted(m["cost"] for m in minima)
+    assert all(np.isfinite([m["e3d_object"], m["camera_error"], m["e3d_camera"], m["nuclear"]]).all() for m in minima)
+    assert [m["spm_minimum"] for m in minima].count(True) <= 1 and (out / "spm_cameras_minima.csv").exists()
     assert [r["lam"] for r in rows] == [None, 0.0, 3.0]
     spm = solve(seq, "spm")
     assert rows[0]["e3d_camera"] == pytest.approx(e3d(spm.points_3d, seq.points_3d), rel=1e-6)
@@ -181,6 +188,10 @@ def test_spm_cameras_scores_each_weight_in_both_frames(tmp_path, capsys):
         assert 0 <= r["e3d_camera"] < 0.2 and 0 <= r["camera_error"] < 0.2 and r["e3d_object"] >= r["e3d_camera"] / 2
     assert spm_cameras.main(args[:4] + ["--lams", "-1"]) == 2
     assert "--lams: expected comma-separated numbers >= 0" in capsys.readouterr().err
+    assert spm_cameras.same_cost(1.7e-29, 7.7e-17) and spm_cameras.same_cost(1.0, 1.0 + 1e-7)
+    assert not spm_cameras.same_cost(3.36e-5, 3.37e-5)
+    assert spm_cameras.main(args[:4] + ["--starts", "-1"]) == 2
+    assert "--starts: expected a number of random starts >= 0" in capsys.readouterr().err
 
 
 _CALLS: list[int] = []
