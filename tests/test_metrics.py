@@ -80,6 +80,15 @@ def test_rotation_error_known_values():
     assert per_frame[2] > 1.0 and per_frame.mean() == pytest.approx(rotation_error(turned, gt))
     # with one frame in five flipped the best global fit is still close to the identity
     assert np.delete(per_frame, 2).max() < 1.0
+    # each frame's error is the spectral norm of its (2, 3) difference (MATLAB's norm(), as in Akhter et al.'s
+    # compareRotations), not the Frobenius norm: a turn by t about the optical axis costs 2 sin(t / 2), not
+    # 2 sqrt(2) sin(t / 2); many exact frames keep the global fit at the identity
+    many = Rotation.random(400, random_state=5).as_matrix()
+    off = many.copy()
+    off[0] = Rotation.from_rotvec([0, 0, np.pi]).as_matrix() @ many[0]
+    off[1] = Rotation.from_rotvec([0, 0, 0.1]).as_matrix() @ many[1]
+    per_frame = rotation_error_per_frame(off, many)
+    assert per_frame[0] == pytest.approx(2.0, abs=0.02) and per_frame[1] == pytest.approx(2 * np.sin(0.05), rel=0.05)
     with pytest.raises(ValidationError, match=r"gt_rotations: expected \(F, 3, 3\) with F = 5"):
         rotation_error(gt, gt[:4])
     # a static ground-truth camera: no object frame or camera error in the classic metrics
