@@ -116,8 +116,8 @@ def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarra
     prediction's rows to the ground truth's; each frame's error is the spectral norm (the largest singular value)
     of its `(2, 3)` difference: ``norm()`` of a matrix in their MATLAB code (``compareRotations``), and with it
     SPM's cameras give the authors' drink and stretch numbers to four digits (.0071, .0676; the Frobenius
-    norm, used here until session 22, gave .0077 and .0748). 0 for exact cameras; ``2 sin(t / 2)`` for a frame
-    turned by ``t`` about the optical axis (2 at 180 degrees).
+    norm gives .0077 and .0748). 0 for exact cameras; ``2 sin(t / 2)`` for a frame turned by ``t`` about the
+    optical axis (2 at 180 degrees).
 
     Args:
         pred_rotations, gt_rotations: `(F, 3, 3)` camera rotations, ``X_cam = R X_obj`` (rows: the camera axes).
