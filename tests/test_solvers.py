@@ -448,6 +448,14 @@ def test_spm_admm_reaches_a_lower_nuclear_norm_than_the_truth():
     assert nuclear(depth) <= nuclear(gt[..., 2]) + 1e-6
 
 
+def test_spm_chooses_cvxpy_by_the_side_of_its_semidefinite_block():
+    """cvxpy's nuclear norm is a semidefinite block of side F + 3P: 5 x 60 (900 entries of S#, side 185) took
+    279 s under the old limit on the entries (1000); ADMM takes milliseconds."""
+    assert solve(lowrank_sequence(10, 10, 2, seed=0), "spm").info["shape_solver"] == "cvxpy"  # side 40
+    rec = solve(lowrank_sequence(5, 60, 1, seed=0), "spm")
+    assert rec.info["shape_solver"] == "admm" and rec.runtime_s < 10
+
+
 def test_spm_recovers_low_rank_with_camera_jumps():
     seq = lowrank_sequence(30, 12, 2, seed=0, cameras="random")  # independent cameras: every frame "jumps"
     rec = solve(seq, "spm", shape_solver="cvxpy")
@@ -843,6 +851,11 @@ def _degenerate(case: str) -> Sequence:
         return lowrank_sequence(3, 4, 2, seed=304)
     if case == "static_camera":  # one frame repeated: no 3D information at all
         return Sequence(points_2d=np.repeat(lowrank_sequence(10, 10, 1, seed=0).points_2d[:1], 10, axis=0))
+    if case == "collinear":  # one line in every frame, scaled at random (EM-PND raised torch's LinAlgError)
+        line = np.c_[np.linspace(0, 1, 8), np.linspace(0, 2, 8)]
+        return Sequence(points_2d=line[None] * np.random.default_rng(1).random((10, 1, 1)))
+    if case == "coincident":  # every frame's points at one place (CSF2 and EM-PPCA raised numpy's ValueError)
+        return Sequence(points_2d=np.repeat(rng.standard_normal((10, 1, 2)), 8, axis=1))
     vis = np.ones((30, 12))
     if case == "point_never_visible":
         vis[:, 4] = 0
@@ -852,7 +865,7 @@ def _degenerate(case: str) -> Sequence:
 
 
 @pytest.mark.parametrize("case", ["rigid", "planar", "three_frames", "three_frames_four_points", "static_camera",
-                                  "frame_all_missing", "point_never_visible"])
+                                  "collinear", "coincident", "frame_all_missing", "point_never_visible"])
 def test_every_solver_gives_finite_shapes_or_a_clear_error_on_degenerate_input(case):
     """The issue's degenerate inputs, for every registered solver: finite shapes and cameras, or an NRSfMError
     whose message names the solver (never NaN, never a bare error from a library underneath); a rigid sequence
@@ -869,8 +882,21 @@ def test_every_solver_gives_finite_shapes_or_a_clear_error_on_degenerate_input(c
             continue
         assert rec.points_3d.shape == (seq.n_frames, seq.n_points, 3), name
         assert np.isfinite(rec.points_3d).all() and np.isfinite(rec.rotations).all(), name
-        if case in ("frame_all_missing", "point_never_visible"):
+        if case in ("coincident", "frame_all_missing", "point_never_visible"):
             raise AssertionError(f"{name} solved a sequence with {case.replace('_', ' ')}")
+
+
+def test_every_solver_refuses_tracks_without_extent():
+    """Every frame's visible points at one place (here also with points missing): one shared message."""
+    from nrsfm.solvers import get_solver
+
+    complete = _degenerate("coincident")
+    missing = complete.replace(points_2d=np.where(np.arange(8)[None, :, None] == 3, np.nan, complete.points_2d),
+                               visibility=np.arange(8)[None].repeat(10, 0) != 3)
+    for name in available_solvers():
+        for seq in (complete, missing) if get_solver(name).handles_missing else (complete,):
+            with pytest.raises(SolverError, match=rf"^{name}: the visible points of every frame of .* coincide"):
+                solve(seq, name)
 
 
 def test_a_point_never_visible_is_refused_with_the_fix():

@@ -130,6 +130,9 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
             if seq.n_points < 4:
                 raise SolverError(f"{name}: expected at least 4 points, got {seq.n_points}; 3 points always lie in "
                                   "a plane, so their depths cannot be recovered")
+            if not _has_extent(seq):
+                raise SolverError(f"{name}: the visible points of every frame of '{seq.name}' coincide (the tracks "
+                                  "have no 2D extent); there is no shape to reconstruct")
             t0 = time.perf_counter()
             with large_arrays_on_heap():  # no mmap/munmap of large temporaries every iteration (nrsfm._malloc)
                 rec = fn(seq, params)
@@ -144,6 +147,16 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
         return solve
 
     return deco
+
+
+def _has_extent(seq: Sequence) -> bool:
+    """Whether some frame's visible points do not all coincide (exactly: no mean is taken, which rounds)."""
+    if seq.visibility is None:
+        return bool(np.ptp(seq.points_2d, axis=1).any())
+    vis = seq.visibility > 0  # (F, P)
+    p2 = seq.points_2d
+    spread = np.where(vis[..., None], p2, -np.inf).max(axis=1) - np.where(vis[..., None], p2, np.inf).min(axis=1)
+    return bool((spread[vis.any(axis=1)] > 0).any())
 
 
 def available_solvers() -> list[str]:

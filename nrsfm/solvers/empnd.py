@@ -324,7 +324,10 @@ def pnd_cost(mean: torch.Tensor, mu: torch.Tensor, moment):
     # a variance floor (1e-9 x the mean variance, and 1e-12 for shapes of norm ~1): on exactly low-rank data
     # (the shark) or a rigid sequence A is singular
     b = b + nb @ nb.T + (1e-9 * torch.trace(b).detach() / (3 * q - 4) + 1e-12) * proj.detach()
-    chol = torch.linalg.cholesky(0.5 * (b + b.T))
+    chol, info = torch.linalg.cholesky_ex(0.5 * (b + b.T))
+    if int(info) > 0:
+        raise SolverError("empnd: the aligned shapes' covariance is singular beyond its variance floor (degenerate "
+                          "shapes: collinear or coincident points?); try init='rigid' or another solver")
     cost = torch.log(torch.diagonal(chol)).sum() - (3 * q - 4) * torch.log(s).mean()
     return cost, (sr, s, chol, nb)
 
@@ -417,8 +420,12 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
             for _ in range(40):
                 trial = mean - step * grad
                 trial = trial / trial.norm()
-                with torch.no_grad():
-                    jt, aux_t = pnd_cost(trial, mu, post.moment)
+                try:
+                    with torch.no_grad():
+                        jt, aux_t = pnd_cost(trial, mu, post.moment)
+                except SolverError:  # a trial where the covariance is singular: a failed step
+                    step *= 0.5
+                    continue
                 if float(jt) <= j0 - 1e-4 * step * g2:
                     mean, j0, aux = trial, float(jt), aux_t
                     step *= 2.0

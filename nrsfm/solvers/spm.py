@@ -22,14 +22,17 @@ Rotation (cameras):
 
 Shape: with ``S_f = R_f^T [W_f; z_f]`` (exact reprojection), minimise the
 nuclear norm of ``S#`` `(F, 3P)` (rows ``[X_f Y_f Z_f]``) over the depths
-``z`` — with cvxpy for small problems (``F * 3P <= cvxpy_limit``, 1000), or by
+``z`` — with cvxpy for small problems (``F + 3P <= cvxpy_limit``, 64), or by
 ADMM (:func:`shape_admm`) otherwise; the two agree on small problems (a test
-checks 1e-4). Clarabel's interior point on the nuclear norm's semidefinite
-program grows fast with the size: 0.6-1.5 s up to 900 entries of ``S#``,
-4.5-8.3 s at 1200-1800 and 32-59 s at 3600 (60 x 20 and 100 x 12 frames x
-points), where ADMM takes 0.001-0.03 s and lands within 5e-4 (relative) of
-cvxpy's depths (with the limit at 4000, SPM took 32 s on a 60-frame, 20-point
-sequence). The
+checks 1e-4). cvxpy writes the nuclear norm as a semidefinite block of side
+``F + 3P``, and Clarabel's interior point grows with that side, whatever the
+shape of ``S#`` (one thread, one shape step): 0.6-1.5 s up to 60 (10 x 10 to
+30 x 10 frames x points), 1.9-2.5 s at 64-70 (4 x 20, 50 x 5, 6 x 20,
+10 x 20), 4.5-8.3 s at 80-90, 8.6-10.4 s at 93-94 (3 x 30, 4 x 30), 32-59 s
+at 120-136 (60 x 20, 100 x 12), 44 s at 128 (8 x 40) and 279 s at 185
+(5 x 60; these four: the whole solve, two threads), where ADMM takes 0.001-0.03 s and lands within 9e-4 (relative) of
+cvxpy's depths. (The limit was on the entries ``F * 3P`` (1000) until 5 x 60
+took 279 s.) The
 authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
 reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
 0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
@@ -66,7 +69,7 @@ class SPMParams:
     """Parameters of :func:`solve_spm` (``K = 0``: automatic).
 
     Attributes:
-        shape_solver: ``"cvxpy"``, ``"admm"``, ``"fpc"`` or ``"auto"`` (cvxpy when F * 3P <= cvxpy_limit, else ADMM).
+        shape_solver: ``"cvxpy"``, ``"admm"``, ``"fpc"`` or ``"auto"`` (cvxpy when F + 3P <= cvxpy_limit, else ADMM).
         trace_weight: weight of trace(Q) in the rotation program (relative).
         truncate: final rank-K truncation of the shape matrix.
         admm_tol / admm_max_iter: relative residual tolerance and iteration cap of :func:`shape_admm`.
@@ -86,7 +89,7 @@ class SPMParams:
     fpc_outer: int = 20
     fpc_inner: int = 100
     fpc_tol: float = 1e-7
-    cvxpy_limit: int = 1000
+    cvxpy_limit: int = 64
     refine_cameras: bool = False
     refine_weight: float = 3.0
     refine_iter: int = 300
@@ -438,7 +441,7 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     wf = w.transpose(0, 2, 1)  # (F, 2, P)
     solver = params.shape_solver
     if solver == "auto":
-        solver = "cvxpy" if n_frames * 3 * n_points <= params.cvxpy_limit else "admm"
+        solver = "cvxpy" if n_frames + 3 * n_points <= params.cvxpy_limit else "admm"
 
     def shape_step(rot: np.ndarray) -> tuple[np.ndarray, int]:
         if solver == "cvxpy":
