@@ -3,7 +3,7 @@
     nrsfm info FILE [--json]
     nrsfm convert IN OUT.npz [--force]
     nrsfm solve FILE --method NAME [--set K=V ...] [--out OUT.npz] [--plot OUT.png] [--json] [--force]
-                [--progress auto|always|never]
+                [--progress auto|always|never] [--weak-perspective]
     nrsfm methods [NAME]
     nrsfm synth KIND OUT.npz [--frames F] [--points P] [--basis K] [--noise S] [--missing M] [--seed N]
     nrsfm demo [--out DIR]
@@ -59,6 +59,10 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite existing output files")
     s.add_argument("--progress", choices=["auto", "always", "never"], default="auto",
                    help="progress bars of the solver's iterations on stderr (auto: when stderr is a terminal)")
+    s.add_argument("--weak-perspective", action="store_true",
+                   help="perspective tracks: normalise the pixels by the intrinsics and solve them as weak "
+                        "perspective (Sequence.to_weak_perspective); metrics against the ground truth divided "
+                        "by each frame's mean depth")
 
     s = sub.add_parser("methods", help="list the registered solvers, or one solver's parameters")
     s.add_argument("name", nargs="?", help="a solver: list its parameters (for --set) with their defaults")
@@ -161,6 +165,8 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         raise ValueError(f"--plot: expected a file name ending in .png, got {args.plot!r}")
     _check_outputs([args.out, args.plot], args.force)
     seq = load_sequence(args.file)
+    if args.weak_perspective:
+        seq = seq.to_weak_perspective()
     show = args.progress == "always" or (args.progress == "auto" and sys.stderr.isatty())
     if show:
         from nrsfm.progress import ProgressBars, listen

@@ -227,6 +227,43 @@ class Sequence:
         return self.replace(points_2d=self.points_2d[:, idx], visibility=take(self.visibility),
                             points_3d=take(self.points_3d), joint_names=names, edges=edges)
 
+    def to_weak_perspective(self) -> "Sequence":
+        """Perspective pixels as weak-perspective tracks, for the solvers that take orthographic ones.
+
+        Each pixel goes through the inverse of its frame's intrinsics to normalised image coordinates
+        ``(X / Z, Y / Z)``: an orthographic view of the shape scaled by ``1 / Z``, up to the perspective
+        distortion of points at other depths than the shape's. The ground truth, when present, is divided by
+        its frame's mean depth, so that its orthographic projection is the tracks up to that same distortion.
+
+        Returns:
+            An orthographic sequence (no intrinsics); ``meta["weak_perspective"]`` says what was done.
+
+        Raises:
+            ValidationError: the tracks are not perspective, there are no intrinsics, or a frame's ground truth
+                has a mean depth <= 0 (behind the camera).
+        """
+        if self.projection != "perspective":
+            raise ValidationError(f"to_weak_perspective: expected perspective tracks, got {self.projection} ones "
+                                  f"in '{self.name}'; they need no conversion")
+        if self.intrinsics is None:
+            raise ValidationError(f"to_weak_perspective: '{self.name}' has perspective tracks and no intrinsics; "
+                                  "pass intrinsics= (3, 3) or (F, 3, 3) to the Sequence (pixels cannot be "
+                                  "normalised without them)")
+        k_inv = np.linalg.inv(np.broadcast_to(self.intrinsics, (self.n_frames, 3, 3)))  # (F, 3, 3)
+        # K^-1 [u, v, 1]^T; its third entry is 1 for every calibration matrix (last row 0, 0, 1)
+        norm = np.einsum("fij,fpj->fpi", k_inv[:, :2, :2], self.points_2d) + k_inv[:, None, :2, 2]
+        points_3d = self.points_3d
+        if points_3d is not None:
+            depth = points_3d[..., 2].mean(axis=1)  # (F,)
+            if (depth <= 0).any():
+                raise ValidationError(f"to_weak_perspective: expected the ground truth in front of the camera, "
+                                      f"got a mean depth of {depth.min():.3g} in frame {int(np.argmin(depth))}")
+            points_3d = points_3d / depth[:, None, None]
+        meta = {**self.meta, "weak_perspective": "pixels normalised by the inverse intrinsics; ground truth "
+                                                 "divided by each frame's mean depth"}
+        return self.replace(points_2d=norm, points_3d=points_3d, projection="orthographic", intrinsics=None,
+                            meta=meta)
+
     def measurement_matrix(self) -> np.ndarray:
         """The classic `(2F, P)` matrix W, rows 2f and 2f+1 holding x and y of frame f."""
         return self.points_2d.transpose(0, 2, 1).reshape(2 * self.n_frames, self.n_points).copy()

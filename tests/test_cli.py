@@ -69,6 +69,18 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys):
                     "device: 'cuda:99' asked for, but torch sees")
 
 
+def test_perspective_tracks_are_refused_with_the_fix_and_solved_as_weak_perspective(tmp_path, capsys):
+    from nrsfm.datasets.synthetic import human_sequences
+
+    seq = human_sequences(("S9",), ("turning",), (1,), n_frames=40, projection="perspective")[0]
+    path = seq.save(tmp_path / "persp.npz")
+    code, out, err = _run(capsys, "solve", str(path), "--method", "csf2")
+    assert code == 2 and err.count("\n") == 1 and "--weak-perspective" in err and "(rank3)" in err
+    code, out, err = _run(capsys, "solve", str(path), "--method", "csf2", "--weak-perspective", "--json")
+    assert code == 0, err
+    assert np.isfinite(json.loads(out)["metrics"]["e3d"])
+
+
 def test_outputs_are_never_overwritten_without_force(tmp_path, capsys):
     good = lowrank_sequence(10, 6, 1).save(tmp_path / "good.npz")
     out = tmp_path / "rec.npz"

@@ -100,3 +100,23 @@ def test_select_points_keeps_names_and_renumbers_edges():
     np.testing.assert_array_equal(sub.visibility, seq.visibility[:, [0, 2, 3, 4]])
     np.testing.assert_array_equal(sub.points_3d, seq.points_3d[:, [0, 2, 3, 4]])
     np.testing.assert_array_equal(sub.camera_rotations, seq.camera_rotations)
+
+
+def test_to_weak_perspective_normalises_pixels_by_the_intrinsics():
+    from nrsfm.datasets.synthetic import human_sequences
+
+    seq = human_sequences(("S9",), ("walking",), (2,), n_frames=20, projection="perspective")[0]
+    k = np.array([[1100.0, 3.0, 500.0], [0.0, 1150.0, 520.0], [0.0, 0.0, 1.0]])  # with skew
+    seq = seq.replace(points_2d=np.einsum("ij,fpj->fpi", k, seq.points_3d / seq.points_3d[..., 2:])[..., :2],
+                      intrinsics=k)
+    weak = seq.to_weak_perspective()
+    assert weak.projection == "orthographic" and weak.intrinsics is None and "weak_perspective" in weak.meta
+    x = seq.points_3d
+    np.testing.assert_allclose(weak.points_2d, x[..., :2] / x[..., 2:], atol=1e-12)  # (X / Z, Y / Z)
+    np.testing.assert_allclose(weak.points_3d, x / x[..., 2].mean(axis=1)[:, None, None], rtol=1e-12)
+    with pytest.raises(ValidationError, match="expected perspective tracks, got orthographic"):
+        weak.to_weak_perspective()
+    with pytest.raises(ValidationError, match="no intrinsics"):
+        seq.replace(intrinsics=None).to_weak_perspective()
+    with pytest.raises(ValidationError, match="in front of the camera"):
+        seq.replace(points_3d=-x).to_weak_perspective()

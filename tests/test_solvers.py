@@ -899,6 +899,21 @@ def test_every_solver_refuses_tracks_without_extent():
                 solve(seq, name)
 
 
+def test_solvers_of_orthographic_tracks_refuse_perspective_ones_with_the_fix():
+    from nrsfm.datasets.synthetic import human_sequences
+    from nrsfm.solvers import get_solver
+
+    seq = human_sequences(("S9",), ("turning",), (1,), n_frames=30, projection="perspective")[0]
+    for name in available_solvers():
+        if get_solver(name).handles_perspective:
+            assert np.isfinite(solve(seq, name).points_3d).all(), name
+            continue
+        with pytest.raises(SolverError, match=rf"^{name}: expected orthographic tracks, got perspective .*"
+                                              r"seq\.to_weak_perspective\(\)"):
+            solve(seq, name)
+        assert np.isfinite(solve(seq.to_weak_perspective(), name).points_3d).all(), name
+
+
 def test_a_point_never_visible_is_refused_with_the_fix():
     seq = _degenerate("point_never_visible")
     with pytest.raises(SolverError, match=r"point 4 is visible in no frame.*select_points"):

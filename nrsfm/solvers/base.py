@@ -124,6 +124,11 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
                 raise SolverError(f"{name}: expected complete tracks, got {seq.missing_fraction:.1%} missing "
                                   f"entries in '{seq.name}'; use a solver that handles missing points "
                                   f"({', '.join(n for n, s in _REGISTRY.items() if s.handles_missing) or 'none yet'})")
+            if not handles_perspective and seq.projection != "orthographic":
+                raise SolverError(f"{name}: expected orthographic tracks, got {seq.projection} ones in '{seq.name}'; "
+                                  "convert them to weak perspective first (seq.to_weak_perspective(), or "
+                                  "'nrsfm solve FILE --weak-perspective'), or use a solver that takes them "
+                                  f"({', '.join(n for n, s in _REGISTRY.items() if s.handles_perspective)})")
             if seq.n_frames < 3:
                 raise SolverError(f"{name}: expected at least 3 frames, got {seq.n_frames}; two orthographic views "
                                   "of even a rigid shape leave its depths free up to a rotation about one axis")

@@ -446,8 +446,6 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
 def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     """CSF2 on an orthographic sequence (missing points allowed). See the module docstring."""
 
-    if seq.projection != "orthographic":
-        raise SolverError(f"csf2: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = seq.weights > 0  # (F, P)
     require_visible_points(seq, "csf2")

@@ -342,8 +342,6 @@ def _precision_from(chol: torch.Tensor, nb: torch.Tensor) -> torch.Tensor:
                                 "TPAMI 2016)", handles_missing=True)
 def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     """EM-PND2 on an orthographic sequence (missing points allowed). See the module docstring."""
-    if seq.projection != "orthographic":
-        raise SolverError(f"empnd: expected orthographic tracks, got {seq.projection}")
     vis = require_visible_points(seq, "empnd")
     n, p = seq.n_frames, seq.n_points
     q = p - 1

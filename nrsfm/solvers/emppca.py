@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nrsfm.errors import SolverError, ValidationError
+from nrsfm.errors import ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
@@ -111,8 +111,6 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     """EM-PPCA on an orthographic sequence (missing points allowed). See the module docstring."""
     from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 
-    if seq.projection != "orthographic":
-        raise SolverError(f"emppca: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = (seq.weights > 0).astype(np.float64)  # (F, P)
     require_visible_points(seq, "emppca")

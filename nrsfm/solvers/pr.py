@@ -144,9 +144,6 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
 
     from nrsfm.procrustes import align, align_vjp, log_det_and_gradient, smoothed_nuclear_norm_and_gradient
 
-    if seq.projection != "orthographic":
-        raise SolverError(f"pr: expected orthographic tracks, got {seq.projection}; normalise perspective "
-                          "detections with the intrinsics first")
     n_frames, n_points = seq.n_frames, seq.n_points
     visible = require_visible_points(seq, "pr")  # (F, P)
     w = seq.measurement_matrix()  # (2F, P)

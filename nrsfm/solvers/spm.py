@@ -430,8 +430,6 @@ def shape_admm(w: np.ndarray, rot: np.ndarray, *, tol: float = 1e-4, max_iter: i
 @register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)")
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on a complete orthographic sequence. See the module docstring."""
-    if seq.projection != "orthographic":
-        raise SolverError(f"spm: expected orthographic tracks, got {seq.projection}")
     n_frames, n_points = seq.n_frames, seq.n_points
     w = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)
     wm = w.transpose(0, 2, 1).reshape(2 * n_frames, n_points)  # (2F, P)
