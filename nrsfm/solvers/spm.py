@@ -30,9 +30,9 @@ shape of ``S#`` (one thread, one shape step): 0.6-1.5 s up to 60 (10 x 10 to
 30 x 10 frames x points), 1.9-2.5 s at 64-70 (4 x 20, 50 x 5, 6 x 20,
 10 x 20), 4.5-8.3 s at 80-90, 8.6-10.4 s at 93-94 (3 x 30, 4 x 30), 32-59 s
 at 120-136 (60 x 20, 100 x 12), 44 s at 128 (8 x 40) and 279 s at 185
-(5 x 60; these four: the whole solve, two threads), where ADMM takes 0.001-0.03 s and lands within 9e-4 (relative) of
-cvxpy's depths. (The limit was on the entries ``F * 3P`` (1000) until 5 x 60
-took 279 s.) The
+(5 x 60; these four: the whole solve, two threads), where ADMM takes
+0.001-0.03 s and lands within 9e-4 (relative) of cvxpy's depths. (The limit
+was on the entries ``F * 3P`` (1000) until 5 x 60 took 279 s.) The
 authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
 reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
 0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
