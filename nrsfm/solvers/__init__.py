@@ -26,5 +26,6 @@ def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstructio
 
 
 __all__ = ["Reconstruction", "SolverSpec", "available_solvers", "get_solver", "params_from_strings", "register",
-           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2", "SPMParams", "solve_spm", "EMPNDParams", "solve_empnd",
+           "solve", "Rank3Params", "solve_rank3", "PRParams", "solve_pr", "CSF2Params", "solve_csf2", "SPMParams",
+           "solve_spm", "EMPNDParams", "solve_empnd",
            "EMPPCAParams", "solve_emppca", "ConsensusParams", "average_reconstructions", "solve_consensus"]
