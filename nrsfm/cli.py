@@ -235,21 +235,25 @@ def _cmd_methods(args: argparse.Namespace) -> int:
     return 0
 
 
+def _or(value: int | None, default: int) -> int:
+    return default if value is None else value
+
+
 def _cmd_synth(args: argparse.Namespace) -> int:
     from nrsfm.datasets import synthetic
 
     _check_outputs([args.output], args.force)
     if args.kind in ("rigid", "lowrank"):
-        seq = synthetic.lowrank_sequence(args.frames or 100, args.points, 1 if args.kind == "rigid" else args.basis,
+        seq = synthetic.lowrank_sequence(_or(args.frames, 100), args.points, 1 if args.kind == "rigid" else args.basis,
                                          noise=args.noise, missing=args.missing, seed=args.seed)
     elif args.kind == "human":
-        seq = synthetic.human_sequences(("S1",), ("walking",), (1,), n_frames=args.frames or 200, noise=args.noise,
+        seq = synthetic.human_sequences(("S1",), ("walking",), (1,), n_frames=_or(args.frames, 200), noise=args.noise,
                                         missing=args.missing, projection=args.projection, seed=args.seed)[0]
     elif args.kind == "face":
-        seq = synthetic.face_sequences(1, args.frames or 300, noise=args.noise, missing=args.missing,
+        seq = synthetic.face_sequences(1, _or(args.frames, 300), noise=args.noise, missing=args.missing,
                                        seed=args.seed)[0]
     else:
-        seq = synthetic.surface_sequence(args.frames or 120, noise=args.noise, seed=args.seed)
+        seq = synthetic.surface_sequence(_or(args.frames, 120), noise=args.noise, seed=args.seed)
     seq.save(args.output, overwrite=args.force)
     print(f"wrote {args.output}: {seq.name}, {seq.n_frames} frames, {seq.n_points} points")
     return 0

@@ -12,12 +12,12 @@ import numpy as np
 
 from nrsfm.errors import ValidationError, shape_error
 from nrsfm.geometry import complete_rotation, nearest_orthonormal_rows
-from nrsfm.sequence import Sequence
+from nrsfm.sequence import Sequence, as_float_array
 
 
 def _interleaved_to_frames(mat: np.ndarray, rows: int, field: str) -> np.ndarray:
     """`(rows*F, P)` -> `(F, P, rows)`."""
-    mat = np.asarray(mat, dtype=np.float64)
+    mat = as_float_array(field, mat)
     if mat.ndim != 2 or mat.shape[0] % rows:
         raise shape_error(field, f"({rows}F, P)", mat.shape, f"rows {rows}f..{rows}f+{rows - 1} hold frame f")
     n_frames = mat.shape[0] // rows
@@ -60,7 +60,7 @@ def from_akhter(w: np.ndarray, s: np.ndarray | None = None, rs: np.ndarray | Non
             raise shape_error("S", f"(3F, P) = ({3 * n_frames}, {n_points})", np.shape(s),
                               "S must have the same frames and points as W")
         if rs is not None:
-            rs = np.asarray(rs, dtype=np.float64)
+            rs = as_float_array("Rs", rs)
             if rs.shape != (2 * n_frames, 3):
                 raise shape_error("Rs", f"(2F, 3) = ({2 * n_frames}, 3)", rs.shape)
             rows = rs.reshape(n_frames, 2, 3)
@@ -76,7 +76,10 @@ def from_akhter(w: np.ndarray, s: np.ndarray | None = None, rs: np.ndarray | Non
     meta = dict(kwargs.pop("meta", {}))
     meta["source_layout"] = "akhter"
     if scale is not None:
-        meta["scale"] = repr(float(scale))
+        value = as_float_array("scale", scale).ravel()
+        if value.size != 1:
+            raise shape_error("scale", "one number", value.shape)
+        meta["scale"] = repr(float(value[0]))
     return Sequence(points_2d=points_2d, points_3d=points_3d, camera_rotations=rotations, name=name,
                     edges=edges, meta=meta, **kwargs)
 
@@ -94,7 +97,7 @@ def _fit_camera_rows(points_2d: np.ndarray, world: np.ndarray) -> np.ndarray:
 
 def from_pnd(x: np.ndarray, *, name: str = "sequence", **kwargs) -> Sequence:
     """Convert the PND layout: ``X`` `(3, P, F)` camera-frame shapes, 2D = ``X[:2]``."""
-    x = np.asarray(x, dtype=np.float64)
+    x = as_float_array("X", x)
     if x.ndim != 3 or x.shape[0] != 3:
         raise shape_error("X", "(3, P, F)", x.shape, "the PND layout stores x, y, z along the first axis")
     points_3d = x.transpose(2, 1, 0)  # (F, P, 3)

@@ -32,7 +32,12 @@ PROJECTIONS = ("orthographic", "perspective")
 FORMAT_VERSION = 1
 
 
-def _as_float_array(name: str, value: Any) -> np.ndarray:
+def as_float_array(name: str, value: Any) -> np.ndarray:
+    """``value`` as a float64 array; a :class:`ValidationError` naming ``name`` for text, objects or complex
+    numbers (numpy would drop an imaginary part with only a warning)."""
+    if np.iscomplexobj(value):
+        raise ValidationError(f"{name}: expected real numbers, got complex values; pass the real part "
+                              "(np.real) if the imaginary part is rounding noise")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -94,7 +99,7 @@ class Sequence:
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
 
-        p2 = _as_float_array("points_2d", self.points_2d)
+        p2 = as_float_array("points_2d", self.points_2d)
         if p2.ndim != 3 or p2.shape[2] != 2:
             raise shape_error("points_2d", "(F, P, 2)", p2.shape, _layout_hint(p2.shape))
         n_frames, n_points, _ = p2.shape
@@ -103,7 +108,7 @@ class Sequence:
 
         vis = None
         if self.visibility is not None:
-            vis = _as_float_array("visibility", self.visibility)
+            vis = as_float_array("visibility", self.visibility)
             if vis.shape != (n_frames, n_points):
                 raise shape_error("visibility", f"(F, P) = ({n_frames}, {n_points})", vis.shape,
                                   "one weight per frame and point, 0 = missing")
@@ -126,7 +131,7 @@ class Sequence:
             set_("visibility", _freeze(vis))
 
         if self.points_3d is not None:
-            p3 = _as_float_array("points_3d", self.points_3d)
+            p3 = as_float_array("points_3d", self.points_3d)
             if p3.shape != (n_frames, n_points, 3):
                 raise shape_error("points_3d", f"(F, P, 3) = ({n_frames}, {n_points}, 3)", p3.shape,
                                   _layout_hint(p3.shape) if p3.ndim != 3 or p3.shape[2] != 3 else
@@ -138,13 +143,13 @@ class Sequence:
         if self.projection not in PROJECTIONS:
             raise ValidationError(f"projection: expected one of {PROJECTIONS}, got {self.projection!r}")
         if self.intrinsics is not None:
-            k = _as_float_array("intrinsics", self.intrinsics)
+            k = as_float_array("intrinsics", self.intrinsics)
             if k.shape not in ((3, 3), (n_frames, 3, 3)):
                 raise shape_error("intrinsics", f"(3, 3) or (F, 3, 3) with F = {n_frames}", k.shape,
                                   "K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
             set_("intrinsics", _freeze(k))
         if self.camera_rotations is not None:
-            r = _as_float_array("camera_rotations", self.camera_rotations)
+            r = as_float_array("camera_rotations", self.camera_rotations)
             if r.shape != (n_frames, 3, 3):
                 raise shape_error("camera_rotations", f"(F, 3, 3) with F = {n_frames}", r.shape)
             set_("camera_rotations", _freeze(r))
@@ -164,7 +169,10 @@ class Sequence:
                                       "MATLAB lists are 1-based: subtract 1")
             set_("edges", _freeze(e.astype(np.int64)))
         if self.fps is not None:
-            set_("fps", float(self.fps))
+            fps = as_float_array("fps", self.fps)
+            if fps.size != 1 or not float(fps.ravel()[0]) > 0 or not np.isfinite(fps).all():
+                raise ValidationError(f"fps: expected one positive frame rate in Hz (or None), got {self.fps!r}")
+            set_("fps", float(fps.ravel()[0]))
         set_("name", str(self.name))
         set_("meta", {str(k): str(v) for k, v in dict(self.meta).items()})
 
@@ -339,24 +347,29 @@ class Sequence:
         except Exception as exc:  # zipfile.BadZipFile, OSError, ...
             raise DataFormatError(f"{path}: expected an .npz archive, could not read it ({exc})") from None
         with data:
-            keys = set(data.files)
-            if "points_2d" not in keys:
+            if "points_2d" not in data.files:
                 raise DataFormatError(f"{path}: expected an nrsfm sequence with a 'points_2d' array, got arrays "
-                                      f"{sorted(keys)}; convert other layouts with 'nrsfm convert'")
-            get = lambda k: data[k] if k in keys else None  # noqa: E731
-            meta = {}
-            if "meta_keys" in keys:
-                meta = dict(zip(data["meta_keys"].tolist(), data["meta_values"].tolist()))
-            return cls(
-                points_2d=data["points_2d"],
-                visibility=get("visibility"),
-                points_3d=get("points_3d"),
-                projection=str(data["projection"]) if "projection" in keys else "orthographic",
-                intrinsics=get("intrinsics"),
-                camera_rotations=get("camera_rotations"),
-                name=str(data["name"]) if "name" in keys else path.stem,
-                joint_names=tuple(data["joint_names"].tolist()) if "joint_names" in keys else None,
-                edges=get("edges"),
-                fps=float(data["fps"]) if "fps" in keys else None,
-                meta=meta,
-            )
+                                      f"{sorted(data.files)}; convert other layouts with 'nrsfm convert'")
+            try:  # the arrays are read lazily: a pickled one fails here
+                arrays = {k: data[k] for k in data.files}
+            except ValueError as exc:
+                raise DataFormatError(f"{path}: expected an nrsfm .npz of plain arrays, got a pickled (object) array; "
+                                      f"save numeric arrays, or rebuild it with Sequence(...).save ({exc})") from None
+        keys = set(arrays)
+        get = arrays.get
+        meta = {}
+        if "meta_keys" in keys:
+            meta = dict(zip(arrays["meta_keys"].tolist(), arrays["meta_values"].tolist()))
+        return cls(
+            points_2d=arrays["points_2d"],
+            visibility=get("visibility"),
+            points_3d=get("points_3d"),
+            projection=str(arrays["projection"]) if "projection" in keys else "orthographic",
+            intrinsics=get("intrinsics"),
+            camera_rotations=get("camera_rotations"),
+            name=str(arrays["name"]) if "name" in keys else path.stem,
+            joint_names=tuple(arrays["joint_names"].tolist()) if "joint_names" in keys else None,
+            edges=get("edges"),
+            fps=arrays["fps"] if "fps" in keys else None,
+            meta=meta,
+        )

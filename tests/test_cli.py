@@ -69,6 +69,34 @@ def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys):
                     "device: 'cuda:99' asked for, but torch sees")
 
 
+def _savemat(path, **arrays):
+    import scipy.io
+
+    scipy.io.savemat(path, arrays)
+
+
+MALFORMED = {
+    "pickled.npz": (lambda p: np.savez(p, points_2d=np.array([np.zeros(3), np.zeros(2)], dtype=object)),
+                    "got a pickled (object) array"),
+    "text.npz": (lambda p: np.savez(p, points_2d=np.array(["a", "b"])), "points_2d: expected a numeric array"),
+    "fps.npz": (lambda p: np.savez(p, points_2d=np.ones((4, 5, 2)), fps="fast"), "fps: expected a numeric array"),
+    "complex.mat": (lambda p: _savemat(p, W=np.ones((8, 5)) + 1j), "W: expected real numbers, got complex"),
+    "text.mat": (lambda p: _savemat(p, W="abc"), "W: expected a numeric array"),
+    "scale.mat": (lambda p: _savemat(p, W=np.ones((8, 5)), scale=np.zeros((0, 0))), "scale: expected one number"),
+    "pnd.mat": (lambda p: _savemat(p, X=np.ones((3, 5, 4)) * 1j), "X: expected real numbers"),
+}
+
+
+@pytest.mark.filterwarnings("error")  # numpy's ComplexWarning would have hidden a dropped imaginary part
+@pytest.mark.parametrize("name", sorted(MALFORMED))
+def test_malformed_files_give_one_line_and_exit_2(tmp_path, capsys, name):
+    write, pattern = MALFORMED[name]
+    path = tmp_path / name
+    write(path)
+    for command in ("info", "solve"):
+        _one_line_error(*_run(capsys, command, str(path))[::2], pattern)
+
+
 def test_perspective_tracks_are_refused_with_the_fix_and_solved_as_weak_perspective(tmp_path, capsys):
     from nrsfm.datasets.synthetic import human_sequences
 

@@ -48,6 +48,12 @@ def test_visibility_and_ground_truth_shapes_are_checked(rng):
         Sequence(points_2d=p2, edges=np.array([[1, 3]]))
     with pytest.raises(ValidationError, match="joint_names"):
         Sequence(points_2d=p2, joint_names=("a", "b"))
+    with pytest.raises(ValidationError, match="points_2d: expected real numbers, got complex"):
+        Sequence(points_2d=p2 + 1j)
+    for fps in (0.0, -5.0, np.nan, [10.0, 20.0]):
+        with pytest.raises(ValidationError, match="fps: expected one positive frame rate"):
+            Sequence(points_2d=p2, fps=fps)
+    assert Sequence(points_2d=p2, fps=np.array(25)).fps == 25.0
 
 
 def test_save_load_roundtrip_without_pickle(tmp_path):

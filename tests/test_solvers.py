@@ -69,6 +69,10 @@ def test_params_from_strings_coerces_and_validates():
         params_from_strings(Rank3Params, ["min_eigenvalue"])
     with pytest.raises(ValidationError, match=r"min_eigenvalue: expected a value in \(0, 1\)"):
         Rank3Params(min_eigenvalue=2.0)
+    seq = lowrank_sequence(10, 6, 1)
+    for name in ("csf2", "pr", "empnd"):  # NaN passes every per-class check ("tol >= 0" is false for it)
+        with pytest.raises(ValidationError, match=rf"{get_solver(name).params.__name__}.tol: expected a finite"):
+            solve(seq, name, params_from_strings(get_solver(name).params, ["tol=nan"]))
 
 
 # ------------------------------------------------------------------ PR

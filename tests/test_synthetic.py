@@ -81,3 +81,13 @@ def test_bad_arguments():
         lowrank_sequence(10, 5, 1, missing=1.5)
     with pytest.raises(ValueError, match="motion"):
         human_motion("S1", "dancing")
+    for make in (lambda **k: lowrank_sequence(10, 5, 1, **k), lambda **k: face_sequences(1, 10, **k),
+                 lambda **k: human_sequences(("S1",), ("walking",), (1,), n_frames=10, **k),
+                 lambda **k: surface_sequence(10, 6, 4, **k)):
+        for noise in (-1.0, np.nan, np.inf):
+            with pytest.raises(ValueError, match="noise: expected a finite standard deviation >= 0"):
+                make(noise=noise)
+    for make in (lambda n: face_sequences(1, n), lambda n: surface_sequence(n),
+                 lambda n: human_sequences(("S1",), ("walking",), (1,), n_frames=n)):
+        with pytest.raises(ValueError, match="expected n_frames >= 1, got 0"):
+            make(0)

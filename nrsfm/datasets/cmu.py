@@ -41,7 +41,7 @@ def load_cmu_mat(path: str | os.PathLike, *, name: str | None = None) -> Sequenc
         edges = mat.get("list")
         if edges is not None and (edges.ndim != 2 or edges.shape[1] != 2):
             edges = None
-        scale = float(np.asarray(mat["scale"]).ravel()[0]) if "scale" in mat else None
+        scale = mat.get("scale")
         return from_akhter(mat["W"], mat.get("S"), mat.get("Rs"), name=name, scale=scale, edges=edges)
     if "X" in mat and np.ndim(mat["X"]) == 3:
         return from_pnd(mat["X"], name=name)

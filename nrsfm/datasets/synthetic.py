@@ -46,6 +46,13 @@ def _smooth_signal(rng: np.random.Generator, t: np.ndarray, n: int, n_harmonics:
     return np.einsum("hn,thn->tn", amp, np.sin(2 * np.pi * freq[None] * t[:, None, None] + phase[None]))
 
 
+def _check_sizes(function: str, n_frames: int, noise: float) -> None:
+    if n_frames < 1:
+        raise ValidationError(f"{function}: expected n_frames >= 1, got {n_frames}")
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValidationError(f"noise: expected a finite standard deviation >= 0, got {noise}")
+
+
 def _mask(rng: np.random.Generator, shape: tuple[int, int], missing: float) -> np.ndarray | None:
     if not 0 <= missing < 1:
         raise ValidationError(f"missing: expected a fraction in [0, 1), got {missing}")
@@ -76,6 +83,7 @@ def lowrank_sequence(n_frames: int = 100, n_points: int = 30, n_basis: int = 3, 
     if n_frames < 1 or n_points < 3 or n_basis < 1:
         raise ValidationError(f"lowrank_sequence: expected n_frames >= 1, n_points >= 3, n_basis >= 1, got "
                               f"{n_frames}, {n_points}, {n_basis}")
+    _check_sizes("lowrank_sequence", n_frames, noise)
     name = name or f"lowrank_K{n_basis}_F{n_frames}_P{n_points}_s{seed}"
     rng = rng_for(seed, name)
     basis = rng.standard_normal((n_basis, n_points, 3))  # (K, P, 3)
@@ -267,6 +275,7 @@ def human_sequences(subjects: tuple[str, ...] = SUBJECTS, motions: tuple[str, ..
     """
     if projection not in ("orthographic", "perspective"):
         raise ValidationError(f"projection: expected 'orthographic' or 'perspective', got {projection!r}")
+    _check_sizes("human_sequences", n_frames, noise)
     cams = ring_cameras(seed)
     out = []
     extremity = np.isin(np.arange(17), [_J[n] for n in ("RFoot", "LFoot", "RWrist", "LWrist", "Head")])
@@ -334,6 +343,7 @@ def face_sequences(n_sequences: int = 8, n_frames: int = 300, *, noise: float = 
 
     2D is the orthographic projection of the camera-frame landmarks (mm).
     """
+    _check_sizes("face_sequences", n_frames, noise)
     template = _face_template()
     lower = template[:, 1] < -25  # jaw, lower lip region
     mouth = np.arange(68) >= 48
@@ -381,6 +391,9 @@ def surface_sequence(n_frames: int = 120, n_u: int = 60, n_v: int = 50, *, noise
     orthographic camera rotated randomly about the y axis (as PRN does for
     SURREAL). Units: mm.
     """
+    _check_sizes("surface_sequence", n_frames, noise)
+    if n_u < 3 or n_v < 2:
+        raise ValidationError(f"surface_sequence: expected n_u >= 3, n_v >= 2, got {n_u}, {n_v}")
     name = name or f"surface_{n_u}x{n_v}_F{n_frames}_s{seed}"
     rng = rng_for(seed, "surface", name)
     u = np.linspace(0, 2 * np.pi, n_u, endpoint=False)

@@ -10,6 +10,7 @@ from strings (``--set K=12``) through :func:`params_from_strings`.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 import typing
@@ -120,6 +121,7 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
             params = params_cls() if params is None else params
             if not isinstance(params, params_cls):
                 raise ValidationError(f"params: expected {params_cls.__name__}, got {type(params).__name__}")
+            _check_finite(params)
             if not handles_missing and not seq.is_complete:
                 raise SolverError(f"{name}: expected complete tracks, got {seq.missing_fraction:.1%} missing "
                                   f"entries in '{seq.name}'; use a solver that handles missing points "
@@ -152,6 +154,15 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
         return solve
 
     return deco
+
+
+def _check_finite(params: Any) -> None:
+    """Refuse NaN or infinite numbers among a parameter dataclass's fields (the per-class checks, ``tol >= 0``
+    and the like, let NaN through: every comparison with it is false)."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValidationError(f"{type(params).__name__}.{f.name}: expected a finite number, got {value}")
 
 
 def _has_extent(seq: Sequence) -> bool:
