@@ -151,12 +151,27 @@ def benchmark_sequences(root: str | None, sequences: str | None, who: str) -> tu
     return folder, files
 
 
+def _jobs(text: str) -> int:
+    """joblib's ``n_jobs``: N workers, or -1 for every core, -2 for all but one, ... (0 means nothing)."""
+    value = int(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("expected a number of workers >= 1, or -1 for every core; got 0")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
 def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
     """The ``--root``, ``--jobs`` and ``--sequences`` options of the benchmarks over the CMU files (read with
     :func:`benchmark_sequences`)."""
     parser.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
                                        "stand-ins)")
-    parser.add_argument("--jobs", type=int, default=1, help=jobs_help)
+    parser.add_argument("--jobs", type=_jobs, default=1, help=jobs_help)
     parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
 
 
@@ -222,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     add_data_arguments(p, "parallel sequences (joblib)")
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
     p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
-    p.add_argument("--long", type=int, default=3000,
+    p.add_argument("--long", type=_non_negative, default=3000,
                    help="also time every solver on a synthetic LONG x 17-point sequence (0: skip)")
     p.add_argument("--settings", choices=("reference", "auto"), default="reference",
                    help="per-sequence settings that reproduce the reference numbers (default), or every solver's "

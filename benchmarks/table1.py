@@ -169,8 +169,9 @@ def _columns(data: str, results: dict) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.table1", description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", choices=["synthetic", "h36m"], default="synthetic")
-    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
+    p.add_argument("--data", choices=["synthetic", "h36m"], default=None,
+                   help="default: h36m when --root is given, else synthetic")
+    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA); implies --data h36m")
     p.add_argument("--input", choices=list(INPUTS) + ["all"], default="gt-ortho")
     p.add_argument("--quick", action="store_true", help="a short schedule and small data: a smoke run")
     p.add_argument("--iterations", type=int, default=None,
@@ -189,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="ignore cached models and checkpoints; train from scratch")
     p.set_defaults(retrain=False)
     args = p.parse_args(argv)
+    if args.data is None:
+        args.data = "h36m" if args.root else "synthetic"
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
         return _run(args)
@@ -200,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     inputs = INPUTS if args.input == "all" else (args.input,)
+    if args.iterations is not None and args.iterations < 1:
+        raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
     iterations = args.iterations or (300 if args.quick else 70_000 if args.data == "h36m" else 4000)
     registry = methods()
     names = list(registry) if args.methods is None else [m.strip() for m in args.methods.split(",")]

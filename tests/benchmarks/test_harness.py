@@ -44,6 +44,20 @@ def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monke
 def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
     assert table1.main(["--data", "h36m", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "h36m: expected a dataset folder" in capsys.readouterr().err
+    # --root alone means Human3.6M (it was ignored, and the synthetic stand-in trained instead)
+    assert table1.main(["--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "h36m: expected a dataset folder" in capsys.readouterr().err
+    assert table1.main(["--iterations", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--iterations: expected a number of training iterations >= 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [(["--jobs", "0"], "argument --jobs: expected a number of workers >= 1"),
+                                           (["--long", "-5"], "argument --long: expected an integer >= 0, got -5")])
+def test_classic_refuses_bad_counts_before_any_work(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        classic.main(argv + ["--out", str(tmp_path / "o")])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_classic_on_small_files(tmp_path, capsys):
