@@ -75,6 +75,22 @@ def test_params_from_strings_coerces_and_validates():
             solve(seq, name, params_from_strings(get_solver(name).params, ["tol=nan"]))
 
 
+def test_solve_checks_keyword_parameters_before_building_them():
+    from nrsfm.solvers import CSF2Params
+
+    seq = lowrank_sequence(30, 10, 2, seed=1)
+    for value, got in (("12", "str '12'"), (2.5, "float 2.5"), (True, "bool True")):  # raised TypeError inside
+        with pytest.raises(ValidationError, match=f"CSF2Params.K: expected int, got {got}"):
+            solve(seq, "csf2", K=value)
+    with pytest.raises(ValidationError, match="CSF2Params has no parameter 'KK'; known: \\['K', "):
+        solve(seq, "csf2", KK=3)
+    assert solve(seq, "csf2", K=np.int64(2), tol=0).params["K"] == 2  # numpy integers, and ints for floats
+    # a params object and keywords: the keywords replace its fields (they were silently ignored)
+    assert solve(seq, "csf2", CSF2Params(d=5), K=2).params == {**vars(CSF2Params(d=5)), "K": 2}
+    with pytest.raises(ValidationError, match="params: expected CSF2Params, got Rank3Params"):
+        solve(seq, "csf2", Rank3Params(), K=2)
+
+
 # ------------------------------------------------------------------ PR
 def test_pr_recovers_a_noise_free_low_rank_sequence():
     seq = lowrank_sequence(200, 30, 3, seed=0)

@@ -5,8 +5,11 @@
 >>> rec = spec.solve(seq, spec.params())  # doctest: +SKIP
 """
 
-from nrsfm.solvers.base import (Reconstruction, SolverSpec, available_solvers, get_solver, params_from_strings,
-                                register)
+import dataclasses
+
+from nrsfm.errors import ValidationError
+from nrsfm.solvers.base import (Reconstruction, SolverSpec, available_solvers, check_param_values, get_solver,
+                                params_from_strings, register)
 from nrsfm.solvers import rank3 as _rank3  # noqa: F401  (registers "rank3")
 from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 from nrsfm.solvers.pr import PRParams, solve_pr
@@ -18,10 +21,21 @@ from nrsfm.solvers.consensus import ConsensusParams, average_reconstructions, so
 
 
 def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstruction:
-    """Solve ``seq`` with the registered ``method``; keyword overrides build its params."""
+    """Solve ``seq`` with the registered ``method``; keyword overrides build its params (or replace fields of
+    ``params`` when both are given)."""
     spec = get_solver(method)
+    known = {f.name for f in dataclasses.fields(spec.params)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValidationError(f"{method}: {spec.params.__name__} has no parameter {unknown[0]!r}; known: "
+                              f"{sorted(known)}")
+    check_param_values(spec.params, overrides)
     if params is None:
         params = spec.params(**overrides)
+    elif overrides:  # a params object and keyword overrides: the overrides win
+        if not isinstance(params, spec.params):
+            raise ValidationError(f"params: expected {spec.params.__name__}, got {type(params).__name__}")
+        params = dataclasses.replace(params, **overrides)
     return spec.solve(seq, params)
 
 

@@ -121,7 +121,7 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
             params = params_cls() if params is None else params
             if not isinstance(params, params_cls):
                 raise ValidationError(f"params: expected {params_cls.__name__}, got {type(params).__name__}")
-            _check_finite(params)
+            check_params(params)
             if not handles_missing and not seq.is_complete:
                 raise SolverError(f"{name}: expected complete tracks, got {seq.missing_fraction:.1%} missing "
                                   f"entries in '{seq.name}'; use a solver that handles missing points "
@@ -156,13 +156,26 @@ def register(name: str, params: type, description: str, *, handles_missing: bool
     return deco
 
 
-def _check_finite(params: Any) -> None:
-    """Refuse NaN or infinite numbers among a parameter dataclass's fields (the per-class checks, ``tol >= 0``
-    and the like, let NaN through: every comparison with it is false)."""
-    for f in dataclasses.fields(params):
-        value = getattr(params, f.name)
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValidationError(f"{type(params).__name__}.{f.name}: expected a finite number, got {value}")
+_KINDS = {int: (int, np.integer), float: (int, float, np.integer, np.floating), bool: (bool, np.bool_), str: (str,)}
+
+
+def check_params(params: Any) -> None:
+    """Refuse parameter values of the wrong type (``K="12"``, ``K=2.5``, ``K=True`` failed deep inside a solver)
+    and NaN or infinite numbers (the per-class checks, ``tol >= 0`` and the like, let NaN through: every
+    comparison with it is false)."""
+    check_param_values(type(params), {f.name: getattr(params, f.name) for f in dataclasses.fields(params)})
+
+
+def check_param_values(params_cls: type, values: dict[str, Any]) -> None:
+    """:func:`check_params` for field values before ``params_cls`` is built (its own checks compare them)."""
+    hints = typing.get_type_hints(params_cls)
+    for name, value in values.items():
+        kind = hints.get(name)
+        where = f"{params_cls.__name__}.{name}"
+        if kind in _KINDS and (not isinstance(value, _KINDS[kind]) or (kind is not bool and isinstance(value, bool))):
+            raise ValidationError(f"{where}: expected {kind.__name__}, got {type(value).__name__} {value!r}")
+        if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+            raise ValidationError(f"{where}: expected a finite number, got {value}")
 
 
 def _has_extent(seq: Sequence) -> bool:
