@@ -40,7 +40,8 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
-    s = sub.add_parser("info", help="summarise and validate a sequence file (.npz or .mat)")
+    s = sub.add_parser("info", help="summarise and validate a sequence file (.npz or .mat), or a "
+                                     "reconstruction written by 'nrsfm solve --out'")
     s.add_argument("file")
     s.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -107,12 +108,49 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # --------------------------------------------------------------------------- commands
+def _is_reconstruction(path: str) -> bool:
+    """Whether ``path`` is an .npz written by ``nrsfm solve --out`` (arrays points_3d, method and run)."""
+    import zipfile
+
+    p = Path(path)
+    if p.suffix.lower() != ".npz" or not p.is_file() or not zipfile.is_zipfile(p):
+        return False
+    with zipfile.ZipFile(p) as z:
+        names = {n.removesuffix(".npy") for n in z.namelist()}
+    return "points_2d" not in names and {"points_3d", "method", "run"} <= names
+
+
+def _reconstruction_info(args: argparse.Namespace) -> int:
+    from nrsfm.solvers import Reconstruction
+
+    rec = Reconstruction.load(args.file)
+    n_frames, n_points, _ = rec.points_3d.shape
+    info = {"file": str(args.file), "kind": "reconstruction", "method": rec.method, "frames": n_frames,
+            "points": n_points, "rotations": rec.rotations is not None, "iterations": rec.iterations,
+            "converged": rec.converged, "runtime_s": rec.runtime_s, "params": rec.params}
+    if args.json:
+        print(json.dumps(info, default=str))
+        return 0
+    print(f"{args.file}: nrsfm reconstruction by '{rec.method}' (nrsfm.Reconstruction.load reads it)")
+    print(f"  frames: {n_frames}")
+    print(f"  points: {n_points}")
+    print(f"  camera rotations: {'present' if rec.rotations is not None else 'absent'}")
+    print(f"  iterations: {rec.iterations} ({'converged' if rec.converged else 'not converged'})")
+    print(f"  run time: {rec.runtime_s:.3f} s")
+    if rec.params:
+        print(f"  parameters: {', '.join(f'{k}={v}' for k, v in rec.params.items())}")
+    return 0
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     from nrsfm.io import load_sequence
 
+    if _is_reconstruction(args.file):
+        return _reconstruction_info(args)
     seq = load_sequence(args.file)
     info = seq.summary()
     info["file"] = str(args.file)
+    info["kind"] = "sequence"
     info["valid"] = True
     if args.json:
         print(json.dumps(info))

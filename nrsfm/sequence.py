@@ -348,6 +348,9 @@ class Sequence:
             raise DataFormatError(f"{path}: expected an .npz archive, could not read it ({exc})") from None
         with data:
             if "points_2d" not in data.files:
+                if {"points_3d", "method", "run"} <= set(data.files):
+                    raise DataFormatError(f"{path}: expected a sequence, got a reconstruction (written by 'nrsfm "
+                                          "solve --out'); read it with nrsfm.Reconstruction.load")
                 raise DataFormatError(f"{path}: expected an nrsfm sequence with a 'points_2d' array, got arrays "
                                       f"{sorted(data.files)}; convert other layouts with 'nrsfm convert'")
             try:  # the arrays are read lazily: a pickled one fails here

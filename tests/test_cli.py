@@ -29,6 +29,28 @@ def test_solve_rigid_synthetic_json(tmp_path, capsys):
         assert rec["points_3d"].shape == (80, 20, 3)
 
 
+def test_a_written_reconstruction_reads_back_and_info_summarises_it(tmp_path, capsys):
+    from nrsfm import Reconstruction, load_sequence
+
+    path = lowrank_sequence(40, 12, 2, seed=3).save(tmp_path / "seq.npz")
+    code, out, err = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "K=2", "--json",
+                          "--out", str(tmp_path / "rec.npz"))
+    assert code == 0, err
+    rec = Reconstruction.load(tmp_path / "rec.npz")
+    assert rec.method == "csf2" and rec.params["K"] == 2 and rec.points_3d.shape == (40, 12, 3)
+    assert rec.rotations.shape == (40, 3, 3) and rec.iterations == json.loads(out)["iterations"]
+    code, out, _ = _run(capsys, "info", str(tmp_path / "rec.npz"), "--json")
+    info = json.loads(out)
+    assert code == 0 and info["kind"] == "reconstruction" and info["frames"] == 40 and info["params"]["K"] == 2
+    code, out, _ = _run(capsys, "info", str(tmp_path / "rec.npz"))
+    assert code == 0 and "reconstruction by 'csf2'" in out and "K=2" in out
+    # read as the other kind, each names the reader to use
+    _one_line_error(*_run(capsys, "solve", str(tmp_path / "rec.npz"))[::2], "read it with nrsfm.Reconstruction.load")
+    with pytest.raises(ValueError, match="it is a sequence: read it with nrsfm.load_sequence"):
+        Reconstruction.load(path)
+    assert load_sequence(path).n_frames == 40
+
+
 def test_solve_text_output_and_set(tmp_path, capsys):
     path = lowrank_sequence(30, 10, 1, seed=3).save(tmp_path / "rigid.npz")
     code, out, _ = _run(capsys, "solve", str(path), "--set", "min_eigenvalue=1e-6")

@@ -90,6 +90,37 @@ class Reconstruction:
                 np.savez_compressed(fh, **arrays)
         return path
 
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Reconstruction":
+        """Read a reconstruction written by :meth:`save` (``nrsfm solve FILE --out REC.npz``; never unpickles)."""
+        import json
+        import zipfile
+
+        from nrsfm.errors import DataFormatError
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        if not zipfile.is_zipfile(path):
+            raise DataFormatError(f"{path}: expected an .npz archive (a zip of .npy arrays), got another kind of file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except Exception as exc:  # pickled arrays, a damaged archive, ...
+            raise DataFormatError(f"{path}: expected an nrsfm reconstruction .npz, could not read it ({exc})") from None
+        if not {"points_3d", "method", "run"} <= set(arrays):
+            hint = "; it is a sequence: read it with nrsfm.load_sequence" if "points_2d" in arrays else ""
+            raise DataFormatError(f"{path}: expected a reconstruction written by 'nrsfm solve --out' (arrays "
+                                  f"points_3d, method, run), got arrays {sorted(arrays)}{hint}")
+        try:
+            run = json.loads(str(arrays["run"]))
+        except ValueError as exc:
+            raise DataFormatError(f"{path}: the 'run' record is not JSON ({exc})") from None
+        return cls(points_3d=arrays["points_3d"], rotations=arrays.get("rotations"), method=str(arrays["method"]),
+                   params=run.get("params", {}), iterations=int(run.get("iterations", 0)),
+                   converged=bool(run.get("converged", True)), runtime_s=float(run.get("runtime_s", 0.0)),
+                   seed=run.get("seed"), info=run.get("info", {}))
+
 
 @dataclass(frozen=True)
 class SolverSpec:
