@@ -32,6 +32,28 @@ def atomic_write(path: str | os.PathLike, *, overwrite: bool = False) -> Iterato
             os.unlink(tmp)
 
 
+def read_npz(path: str | os.PathLike, what: str) -> dict:
+    """Every array of an `.npz` file as a dict, never unpickling; a :class:`DataFormatError` naming ``what``
+    the file was expected to be when it is missing, not a zip of arrays, damaged or holds pickled objects."""
+    import zipfile
+
+    import numpy as np
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if not path.is_file() or not zipfile.is_zipfile(path):
+        raise DataFormatError(f"{path}: expected an .npz archive (a zip of .npy arrays), got another kind of file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}  # read lazily: a pickled array fails here
+    except ValueError as exc:
+        raise DataFormatError(f"{path}: expected {what} of plain arrays, got a pickled (object) array; save numeric "
+                              f"arrays ({exc})") from None
+    except Exception as exc:  # zipfile.BadZipFile, OSError, ...
+        raise DataFormatError(f"{path}: expected {what}, could not read it ({exc})") from None
+
+
 def load_sequence(path: str | os.PathLike):
     """Read a :class:`~nrsfm.sequence.Sequence` from `.npz` or a CMU `.mat` file.
 

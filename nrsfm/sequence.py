@@ -332,32 +332,16 @@ class Sequence:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Sequence":
         """Read a sequence written by :meth:`save` (never unpickles)."""
-        import zipfile
+        from nrsfm.io import read_npz
 
         path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"{path}: no such file")
-        if not zipfile.is_zipfile(path):
-            raise DataFormatError(f"{path}: expected an .npz archive (a zip of .npy arrays), got another kind of file")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            raise DataFormatError(f"{path}: expected an nrsfm .npz without pickled objects, got an unreadable file "
-                                  f"({exc})") from None
-        except Exception as exc:  # zipfile.BadZipFile, OSError, ...
-            raise DataFormatError(f"{path}: expected an .npz archive, could not read it ({exc})") from None
-        with data:
-            if "points_2d" not in data.files:
-                if {"points_3d", "method", "run"} <= set(data.files):
-                    raise DataFormatError(f"{path}: expected a sequence, got a reconstruction (written by 'nrsfm "
-                                          "solve --out'); read it with nrsfm.Reconstruction.load")
-                raise DataFormatError(f"{path}: expected an nrsfm sequence with a 'points_2d' array, got arrays "
-                                      f"{sorted(data.files)}; convert other layouts with 'nrsfm convert'")
-            try:  # the arrays are read lazily: a pickled one fails here
-                arrays = {k: data[k] for k in data.files}
-            except ValueError as exc:
-                raise DataFormatError(f"{path}: expected an nrsfm .npz of plain arrays, got a pickled (object) array; "
-                                      f"save numeric arrays, or rebuild it with Sequence(...).save ({exc})") from None
+        arrays = read_npz(path, "an nrsfm sequence .npz")
+        if "points_2d" not in arrays:
+            if {"points_3d", "method", "run"} <= set(arrays):
+                raise DataFormatError(f"{path}: expected a sequence, got a reconstruction (written by 'nrsfm solve "
+                                      "--out'); read it with nrsfm.Reconstruction.load")
+            raise DataFormatError(f"{path}: expected an nrsfm sequence with a 'points_2d' array, got arrays "
+                                  f"{sorted(arrays)}; convert other layouts with 'nrsfm convert'")
         keys = set(arrays)
         get = arrays.get
         meta = {}

@@ -94,20 +94,11 @@ class Reconstruction:
     def load(cls, path: str | os.PathLike) -> "Reconstruction":
         """Read a reconstruction written by :meth:`save` (``nrsfm solve FILE --out REC.npz``; never unpickles)."""
         import json
-        import zipfile
 
         from nrsfm.errors import DataFormatError
+        from nrsfm.io import read_npz
 
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such file")
-        if not zipfile.is_zipfile(path):
-            raise DataFormatError(f"{path}: expected an .npz archive (a zip of .npy arrays), got another kind of file")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except Exception as exc:  # pickled arrays, a damaged archive, ...
-            raise DataFormatError(f"{path}: expected an nrsfm reconstruction .npz, could not read it ({exc})") from None
+        arrays = read_npz(path, "an nrsfm reconstruction .npz")
         if not {"points_3d", "method", "run"} <= set(arrays):
             hint = "; it is a sequence: read it with nrsfm.load_sequence" if "points_2d" in arrays else ""
             raise DataFormatError(f"{path}: expected a reconstruction written by 'nrsfm solve --out' (arrays "
