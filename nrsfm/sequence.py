@@ -152,6 +152,15 @@ class Sequence:
             r = as_float_array("camera_rotations", self.camera_rotations)
             if r.shape != (n_frames, 3, 3):
                 raise shape_error("camera_rotations", f"(F, 3, 3) with F = {n_frames}", r.shape)
+            if not np.isfinite(r).all():
+                raise ValidationError("camera_rotations: expected finite values, got NaN or inf")
+            off = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))  # (F,)
+            det = np.linalg.det(r)
+            if off.max() > 1e-4 or det.min() < 0:
+                f = int(np.argmax(np.maximum(off, det < 0)))
+                raise ValidationError(f"camera_rotations: expected rotation matrices (R R^T = I, det R = +1), got "
+                                      f"|R R^T - I| = {off[f]:.2g}, det {det[f]:.3g} at frame {f}; pass the "
+                                      "nearest rotations (nrsfm.geometry.nearest_rotation) or none")
             set_("camera_rotations", _freeze(r))
         if self.joint_names is not None:
             names = tuple(str(n) for n in self.joint_names)

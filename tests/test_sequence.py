@@ -54,6 +54,9 @@ def test_visibility_and_ground_truth_shapes_are_checked(rng):
         with pytest.raises(ValidationError, match="fps: expected one positive frame rate"):
             Sequence(points_2d=p2, fps=fps)
     assert Sequence(points_2d=p2, fps=np.array(25)).fps == 25.0
+    for bad, what in ((np.zeros((4, 3, 3)), r"\|R R\^T - I\| = 1"), (-np.eye(3)[None].repeat(4, 0), "det -1")):
+        with pytest.raises(ValidationError, match=f"camera_rotations: expected rotation matrices.*{what}"):
+            Sequence(points_2d=p2, camera_rotations=bad)
 
 
 def test_save_load_roundtrip_without_pickle(tmp_path):
