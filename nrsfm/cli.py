@@ -175,8 +175,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix != ".npz":
         raise ValueError(f"output: expected a file name ending in .npz, got {args.output!r}")
-    if out.exists() and not args.force:
-        raise FileExistsError(f"{out}: the file exists; pass --force to replace it")
+    _check_outputs([args.output], args.force, inputs=(args.input,))
     seq = load_sequence(args.input)
     seq.save(out, overwrite=args.force)
     print(f"wrote {out}: {seq.n_frames} frames, {seq.n_points} points, ground truth "
@@ -184,9 +183,15 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_outputs(paths: list[str | None], force: bool) -> None:
+def _check_outputs(paths: list[str | None], force: bool, inputs: tuple[str, ...] = ()) -> None:
+    """Refuse outputs that exist (unless ``force``) and, even with ``force``, an output that is an input."""
     for p in paths:
-        if p is not None and Path(p).exists() and not force:
+        if p is None:
+            continue
+        if any(Path(p).resolve() == Path(i).resolve() for i in inputs):
+            raise FileExistsError(f"{p}: this is the input file; choose another output name (--force does not "
+                                  "replace an input)")
+        if Path(p).exists() and not force:
             raise FileExistsError(f"{p}: the file exists; pass --force to replace it")
 
 
@@ -201,7 +206,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         raise ValueError(f"--out: expected a file name ending in .npz, got {args.out!r}")
     if args.plot is not None and not args.plot.lower().endswith(".png"):
         raise ValueError(f"--plot: expected a file name ending in .png, got {args.plot!r}")
-    _check_outputs([args.out, args.plot], args.force)
+    _check_outputs([args.out, args.plot], args.force, inputs=(args.file,))
     seq = load_sequence(args.file)
     if args.weak_perspective:
         seq = seq.to_weak_perspective()

@@ -138,11 +138,18 @@ def test_outputs_are_never_overwritten_without_force(tmp_path, capsys):
     _one_line_error(*_run(capsys, "solve", str(good), "--out", str(out))[::2], "--force")
     assert out.read_bytes() == b"user data"
     code, _, err = _run(capsys, "solve", str(good), "--out", str(out), "--force")
-    assert code == 0, err and out.read_bytes() != b"user data"
+    assert code == 0, err
+    assert out.read_bytes() != b"user data"
     conv = tmp_path / "conv.npz"
     conv.write_bytes(b"mine")
     _one_line_error(*_run(capsys, "convert", str(good), str(conv))[::2], "--force")
     assert conv.read_bytes() == b"mine"
+    # not even --force replaces the input file (here named another way)
+    before = good.read_bytes()
+    same = str(tmp_path / "." / "good.npz")
+    for argv in (["solve", str(good), "--out", same, "--force"], ["convert", str(good), same, "--force"]):
+        _one_line_error(*_run(capsys, *argv)[::2], "this is the input file")
+    assert good.read_bytes() == before
 
 
 def test_info_json_and_synth(tmp_path, capsys):
