@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nrsfm.errors import ValidationError, shape_error
 from nrsfm.sequence import Sequence
 
 
@@ -68,9 +69,17 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
         The written PNG path. Missing 2D points are drawn as red crosses; the
         reconstruction is globally rotated onto the ground truth for display.
     """
-    plt = _pyplot()
+    if points_3d is not None:
+        points_3d = np.asarray(points_3d, dtype=np.float64)
+        if points_3d.shape != (seq.n_frames, seq.n_points, 3):
+            raise shape_error("points_3d", f"(F, P, 3) = ({seq.n_frames}, {seq.n_points}, 3) like the sequence",
+                              points_3d.shape)
     if frames is None:
         frames = sorted(set(np.linspace(0, seq.n_frames - 1, min(4, seq.n_frames)).astype(int).tolist()))
+    bad = [f for f in frames if not -seq.n_frames <= f < seq.n_frames]
+    if not frames or bad:
+        raise ValidationError(f"frames: expected indices in [0, {seq.n_frames - 1}], got {list(frames)}")
+    plt = _pyplot()
     cols = ["2D input"]
     rec = None
     if points_3d is not None:
@@ -103,6 +112,8 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
 def plot_error_curve(curves: dict[str, np.ndarray], path: str | os.PathLike, *, ylabel: str = "error",
                      title: str = "", overwrite: bool = True) -> Path:
     """Per-frame error curves, one line per entry of ``curves`` (`(F,)` arrays)."""
+    if not curves:
+        raise ValidationError("curves: expected at least one named curve, got none")
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 3))
     for label, values in curves.items():
