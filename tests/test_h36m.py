@@ -113,6 +113,11 @@ def test_s9_walking_camera1_projection_matches_hourglass_hip(h36m_dir):
 def test_real_loader_split_and_shapes(h36m_dir):
     seqs = h36m.load_h36m(h36m_dir, ["S9"], actions=("Walking",), stride=1, source_fps=10)
     assert len(seqs) == 8  # 2 sub-actions x 4 cameras
+    with pytest.raises(ValueError, match=r"expected Human3.6M files of subjects \['S99'\], found none; subjects "
+                                         r"present: \[.*'S9'"):
+        h36m.load_h36m(h36m_dir, ["S99"])  # returned an empty list
+    with pytest.raises(ValueError, match=r"actions \['Flying'\], found none"):
+        h36m.load_h36m(h36m_dir, ["S9"], actions=("Flying",))
     for s in seqs:
         assert s.n_points == 17 and s.points_3d[..., 2].min() > 1000  # in front of the camera, mm
         bones = np.linalg.norm(s.points_3d[:, 1] - s.points_3d[:, 2], axis=1)  # RHip-RKnee

@@ -232,8 +232,9 @@ def load_h36m(root: str | os.PathLike, subjects: tuple[str, ...] | list[str], *,
     """Every sub-action and camera of ``subjects`` present under ``root``.
 
     Subjects absent from ``root`` are skipped (the caller reports which were
-    found). S11 "Directions" has corrupt detections upstream and is skipped
-    for ``input='sh'``, as in 3d-pose-baseline.
+    found); when nothing at all matches, a :class:`DataFormatError` lists
+    what is there. S11 "Directions" has corrupt detections upstream and is
+    skipped for ``input='sh'``, as in 3d-pose-baseline.
     """
     root = Path(root)
     cams = load_cameras(root / "cameras.h5")
@@ -248,6 +249,11 @@ def load_h36m(root: str | os.PathLike, subjects: tuple[str, ...] | list[str], *,
             for c in cameras:
                 out.append(load_h36m_sequence(root, subj, stem, c, input=input, stride=stride,
                                               source_fps=source_fps, cameras=cams))
+    if not out:
+        present = sorted(p.name for p in root.iterdir() if p.is_dir() and list_actions(root, p.name))
+        wanted = f"subjects {list(subjects)}" + (f", actions {list(actions)}" if actions is not None else "")
+        raise DataFormatError(f"{root}: expected Human3.6M files of {wanted}, found none; subjects present: "
+                              f"{present}" + ("" if cameras else "; no cameras asked for"))
     return out
 
 
