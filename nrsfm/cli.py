@@ -109,15 +109,16 @@ def main(argv: list[str] | None = None) -> int:
 
 # --------------------------------------------------------------------------- commands
 def _is_reconstruction(path: str) -> bool:
-    """Whether ``path`` is an .npz written by ``nrsfm solve --out`` (arrays points_3d, method and run)."""
+    """Whether ``path`` is an .npz written by ``nrsfm solve --out`` (only its member names are read)."""
     import zipfile
+
+    from nrsfm.io import is_reconstruction
 
     p = Path(path)
     if p.suffix.lower() != ".npz" or not p.is_file() or not zipfile.is_zipfile(p):
         return False
     with zipfile.ZipFile(p) as z:
-        names = {n.removesuffix(".npy") for n in z.namelist()}
-    return "points_2d" not in names and {"points_3d", "method", "run"} <= names
+        return is_reconstruction({n.removesuffix(".npy") for n in z.namelist()})
 
 
 def _reconstruction_info(args: argparse.Namespace) -> int:

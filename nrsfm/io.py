@@ -32,6 +32,15 @@ def atomic_write(path: str | os.PathLike, *, overwrite: bool = False) -> Iterato
             os.unlink(tmp)
 
 
+#: The arrays that mark an `.npz` written by :meth:`nrsfm.Reconstruction.save` (``nrsfm solve --out``).
+RECONSTRUCTION_ARRAYS = frozenset({"points_3d", "method", "run"})
+
+
+def is_reconstruction(names) -> bool:
+    """Whether an `.npz` with these array names is a reconstruction rather than a sequence."""
+    return "points_2d" not in names and RECONSTRUCTION_ARRAYS <= set(names)
+
+
 def read_npz(path: str | os.PathLike, what: str) -> dict:
     """Every array of an `.npz` file as a dict, never unpickling; a :class:`DataFormatError` naming ``what``
     the file was expected to be when it is missing, not a zip of arrays, damaged or holds pickled objects."""

@@ -178,10 +178,10 @@ class Sequence:
                                       "MATLAB lists are 1-based: subtract 1")
             set_("edges", _freeze(e.astype(np.int64)))
         if self.fps is not None:
-            fps = as_float_array("fps", self.fps)
-            if fps.size != 1 or not float(fps.ravel()[0]) > 0 or not np.isfinite(fps).all():
+            fps = as_float_array("fps", self.fps).ravel()
+            if fps.size != 1 or not (np.isfinite(fps[0]) and fps[0] > 0):
                 raise ValidationError(f"fps: expected one positive frame rate in Hz (or None), got {self.fps!r}")
-            set_("fps", float(fps.ravel()[0]))
+            set_("fps", float(fps[0]))
         set_("name", str(self.name))
         set_("meta", {str(k): str(v) for k, v in dict(self.meta).items()})
 
@@ -341,12 +341,12 @@ class Sequence:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Sequence":
         """Read a sequence written by :meth:`save` (never unpickles)."""
-        from nrsfm.io import read_npz
+        from nrsfm.io import is_reconstruction, read_npz
 
         path = Path(path)
         arrays = read_npz(path, "an nrsfm sequence .npz")
         if "points_2d" not in arrays:
-            if {"points_3d", "method", "run"} <= set(arrays):
+            if is_reconstruction(arrays):
                 raise DataFormatError(f"{path}: expected a sequence, got a reconstruction (written by 'nrsfm solve "
                                       "--out'); read it with nrsfm.Reconstruction.load")
             raise DataFormatError(f"{path}: expected an nrsfm sequence with a 'points_2d' array, got arrays "

@@ -24,12 +24,7 @@ def solve(seq, method: str = "rank3", params=None, **overrides) -> Reconstructio
     """Solve ``seq`` with the registered ``method``; keyword overrides build its params (or replace fields of
     ``params`` when both are given)."""
     spec = get_solver(method)
-    known = {f.name for f in dataclasses.fields(spec.params)}
-    unknown = sorted(set(overrides) - known)
-    if unknown:
-        raise ValidationError(f"{method}: {spec.params.__name__} has no parameter {unknown[0]!r}; known: "
-                              f"{sorted(known)}")
-    check_param_values(spec.params, overrides)
+    check_param_values(spec.params, overrides, method)
     if params is None:
         params = spec.params(**overrides)
     elif overrides:  # a params object and keyword overrides: the overrides win

@@ -96,10 +96,10 @@ class Reconstruction:
         import json
 
         from nrsfm.errors import DataFormatError
-        from nrsfm.io import read_npz
+        from nrsfm.io import RECONSTRUCTION_ARRAYS, read_npz
 
         arrays = read_npz(path, "an nrsfm reconstruction .npz")
-        if not {"points_3d", "method", "run"} <= set(arrays):
+        if not RECONSTRUCTION_ARRAYS <= set(arrays):
             hint = "; it is a sequence: read it with nrsfm.load_sequence" if "points_2d" in arrays else ""
             raise DataFormatError(f"{path}: expected a reconstruction written by 'nrsfm solve --out' (arrays "
                                   f"points_3d, method, run), got arrays {sorted(arrays)}{hint}")
@@ -188,11 +188,19 @@ def check_params(params: Any) -> None:
     check_param_values(type(params), {f.name: getattr(params, f.name) for f in dataclasses.fields(params)})
 
 
-def check_param_values(params_cls: type, values: dict[str, Any]) -> None:
-    """:func:`check_params` for field values before ``params_cls`` is built (its own checks compare them)."""
+def _unknown_parameter(params_cls: type, name: str, who: str) -> ValidationError:
+    known = sorted(f.name for f in dataclasses.fields(params_cls))
+    return ValidationError(f"{who}: {params_cls.__name__} has no parameter {name!r}; known: {known}")
+
+
+def check_param_values(params_cls: type, values: dict[str, Any], who: str = "params") -> None:
+    """:func:`check_params` for field values before ``params_cls`` is built (its own checks compare them); an
+    unknown name is an error that starts with ``who`` and lists the known ones."""
     hints = typing.get_type_hints(params_cls)
     for name, value in values.items():
-        kind = hints.get(name)
+        if name not in hints:
+            raise _unknown_parameter(params_cls, name, who)
+        kind = hints[name]
         where = f"{params_cls.__name__}.{name}"
         if kind in _KINDS and (not isinstance(value, _KINDS[kind]) or (kind is not bool and isinstance(value, bool))):
             raise ValidationError(f"{where}: expected {kind.__name__}, got {type(value).__name__} {value!r}")
@@ -233,7 +241,7 @@ def params_from_strings(params_cls: type, assignments: list[str] | None) -> Any:
             raise ValidationError(f"--set: expected NAME=VALUE, got {item!r}")
         key, raw = (s.strip() for s in item.split("=", 1))
         if key not in fields:
-            raise ValidationError(f"--set: {params_cls.__name__} has no parameter {key!r}; known: {sorted(fields)}")
+            raise _unknown_parameter(params_cls, key, "--set")
         values[key] = _coerce(key, raw, hints[key])
     return params_cls(**values)
 
