@@ -94,11 +94,13 @@ def drop_entries(seq, fraction: float):
     return seq.replace(visibility=vis)
 
 
-def long_sequence(n_frames: int):
-    """The speed case of the issue: a synthetic ``n_frames`` x 17-point low-rank (K = 3) sequence, smooth cameras."""
+def long_sequence(n_frames: int, noise: float = 0.0):
+    """The speed case of the issue: a synthetic ``n_frames`` x 17-point low-rank (K = 3) sequence, smooth cameras
+    (one steady turn), noise-free unless ``noise`` (2D noise, relative)."""
     from nrsfm.datasets.synthetic import lowrank_sequence
 
-    return lowrank_sequence(n_frames, 17, 3, cameras="smooth", seed=0, name=f"synthetic-{n_frames}x17")
+    name = f"synthetic-{n_frames}x17" + (f"-noise{noise:g}" if noise else "")
+    return lowrank_sequence(n_frames, 17, 3, cameras="smooth", seed=0, noise=noise, name=name)
 
 
 #: The stand-ins used when no CMU data is found (no ``--root``, ``$NRSFM_DATA`` unset), so that a fresh clone
@@ -176,21 +178,23 @@ def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
 
 
 def load_benchmark_sequence(job: str):
-    """A job of :func:`benchmark_sequences` (a file or a stand-in name), or ``synthetic:F`` for
-    :func:`long_sequence`, as a :class:`~nrsfm.sequence.Sequence`."""
+    """A job of :func:`benchmark_sequences` (a file or a stand-in name), or ``synthetic:F`` /
+    ``synthetic:F:NOISE`` for :func:`long_sequence`, as a :class:`~nrsfm.sequence.Sequence`."""
     import nrsfm
 
     if job.startswith("synthetic:"):
-        return long_sequence(int(job.split(":")[1]))
+        _, frames, *noise = job.split(":")
+        return long_sequence(int(frames), float(noise[0]) if noise else 0.0)
     if job in STAND_INS:
         return stand_in(job)
     return nrsfm.load_sequence(job)
 
 
-def solve_cell(job: str, method: str, missing: float, settings: str = "reference") -> dict:
+def solve_cell(job: str, method: str, missing: float, settings: str = "reference", extra: dict | None = None
+               ) -> dict:
     """One solver on one sequence (a file, ``synthetic:F`` for :func:`long_sequence` or a name in
     :data:`STAND_INS`): one result row (errors recorded, never raised). ``settings="reference"`` applies
-    :data:`REFERENCE_SETTINGS`."""
+    :data:`REFERENCE_SETTINGS`; ``extra`` sets more parameters (over those)."""
     import nrsfm
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import classic_metrics
@@ -203,6 +207,7 @@ def solve_cell(job: str, method: str, missing: float, settings: str = "reference
         # EM-PND needs none: with missing points it starts from CSF2 with the automatic K (the e3D after EM is
         # the same as from CSF2's reference K; benchmarks/RESULTS.md), with complete tracks from its own start
         overrides = dict(REFERENCE_SETTINGS.get(method, {}).get(seq.name, {}))
+    overrides.update(extra or {})
     row["settings"] = ",".join(f"{k}={v}" for k, v in overrides.items()) or "default"
     t0 = time.perf_counter()
     try:

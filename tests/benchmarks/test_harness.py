@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, table1
+from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape, table1
 from benchmarks.common import Interrupted, run_cells
 from nrsfm import solve
 from nrsfm.datasets.synthetic import lowrank_sequence
@@ -218,6 +218,24 @@ def _square_or_fail(x: int, fail_at: int, ctrl_c_at: int = -1) -> dict:
     if x == ctrl_c_at:
         raise KeyboardInterrupt
     return {"x": x, "square": np.int64(x * x), "root": np.float64(x) ** 0.5}
+
+
+def test_spm_shape_compares_both_objectives_on_files_and_smooth_cameras(tmp_path, capsys):
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 10, 2, seed=0))
+    out = tmp_path / "out"
+    args = ["--root", str(tmp_path / "data"), "--out", str(out), "--smooth", "40", "--no-progress"]
+    assert spm_shape.main(args) == 0
+    assert "| sequence | SPM, nuclear | SPM, partial | authors |" in capsys.readouterr().out
+    rows = json.loads((out / "spm_shape.json").read_text())["rows"]
+    assert [(r["sequence"], r["objective"]) for r in rows] == [
+        (name, o) for name in ("synthetic-40x17", "synthetic-40x17-noise0.01", "tiny") for o in ("nuclear", "partial")]
+    assert all(r["status"] == "ok" for r in rows)
+    tiny = [r for r in rows if r["sequence"] == "tiny"]
+    for r in tiny:  # the cells are the solver's own results
+        rec = solve(seq, "spm", shape_objective=r["objective"])
+        assert r["e3d_camera"] == pytest.approx(e3d(rec.points_3d, seq.points_3d), rel=1e-6, abs=1e-9)
+    assert spm_shape.main(args + ["--smooth", "2"]) == 2
+    assert "--smooth: expected comma-separated frame counts" in capsys.readouterr().err
 
 
 def test_run_cells_saves_each_cell_and_resumes_after_an_interruption(tmp_path):
