@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape, table1
+from benchmarks import auto_k, classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape, table1
 from benchmarks.common import Interrupted, run_cells
 from nrsfm import solve
 from nrsfm.datasets.synthetic import lowrank_sequence
@@ -236,6 +236,27 @@ def test_spm_shape_compares_both_objectives_on_files_and_smooth_cameras(tmp_path
         assert r["e3d_camera"] == pytest.approx(e3d(rec.points_3d, seq.points_3d), rel=1e-6, abs=1e-9)
     assert spm_shape.main(args + ["--smooth", "2"]) == 2
     assert "--smooth: expected comma-separated frame counts" in capsys.readouterr().err
+
+
+def test_auto_k_scores_every_k_and_each_rule(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(auto_k, "SMOOTH", [(3, 2, 0.01)])
+    monkeypatch.setattr(auto_k, "RANDOM", [])
+    monkeypatch.setattr(auto_k, "FACE_NOISE", ())
+    seq = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 10, 2, seed=0))
+    out = tmp_path / "out"
+    assert auto_k.main(["--root", str(tmp_path / "data"), "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "| smooth:3:2:0.01 | 40 / 9 | " in text and "| tiny | 6 / – | " in text and "| tiny+0.01 | 9 / – |" in text
+    data = json.loads((out / "auto_k.json").read_text())
+    assert [(r["sequence"], r["K"]) for r in data["rows"]] == (
+        [("smooth:3:2:0.01", k) for k in range(1, 9)] + [(n, k) for n in ("tiny", "tiny+0.01") for k in (1, 2, 3)])
+    noisy = data["summary"][0]
+    assert (noisy["auto_k"], noisy["previous_k"], noisy["cap"]) == (3, 8, 8)
+    assert noisy["e3d_auto"] < 0.05 < 0.3 < noisy["e3d_previous"] and noisy["e3d_best"] <= noisy["e3d_auto"]
+    smooth = auto_k.make_sequence("smooth:3:2:0.01")
+    rec = solve(smooth, "csf2")  # the cell is the solver's own result with the automatic K
+    assert rec.info["K"] == 3 and noisy["e3d_auto"] == pytest.approx(e3d(rec.points_3d, smooth.points_3d), rel=1e-6)
+    assert auto_k.previous_rule(seq.measurement_matrix()) == 3  # rank 6: ceil(6 / 3) + 1, at the cap
 
 
 def test_run_cells_saves_each_cell_and_resumes_after_an_interruption(tmp_path):
