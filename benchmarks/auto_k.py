@@ -15,16 +15,14 @@ CSV/JSON/Markdown to ``runs/auto_k``; cells are saved and resumed as in ``benchm
 
 from __future__ import annotations
 
-import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata,
-                               write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, markdown_table, run_cells_from_args, run_metadata, write_csv, write_json,
+                               write_text_atomic)
 
 log = logging.getLogger("benchmarks.auto_k")
 
@@ -114,20 +112,12 @@ def _at(errors: dict[int, float], k: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import add_data_arguments, benchmark_sequences, job_identity
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import job_identity, parse_data_benchmark
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.auto_k", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel cells (joblib)")
-    p.add_argument("--out", default="runs/auto_k", help="output folder (default: runs/auto_k)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        folder, files = benchmark_sequences(args.root, args.sequences, "auto_k")
-    except (NRSfMError, ValueError) as exc:
-        print(f"auto_k: error: {exc}", file=sys.stderr)
+    parsed = parse_data_benchmark("auto_k", __doc__, argv)
+    if parsed is None:
         return 2
+    args, folder, files, _ = parsed
     t0 = time.perf_counter()
     out = Path(args.out)
     jobs = synthetic_jobs()

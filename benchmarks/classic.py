@@ -39,6 +39,7 @@ import sys
 import time
 import zlib
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -175,6 +176,38 @@ def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
                                        "stand-ins)")
     parser.add_argument("--jobs", type=_jobs, default=1, help=jobs_help)
     parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
+
+
+def parse_data_benchmark(name: str, doc: str, argv: list[str] | None, *, jobs_help: str = "parallel cells (joblib)",
+                         options: Callable[[argparse.ArgumentParser], None] | None = None,
+                         check: Callable[[argparse.Namespace], Any] | None = None, out_help: str | None = None
+                         ) -> tuple[argparse.Namespace, Path | None, list[str], Any] | None:
+    """The command line of ``python -m benchmarks.NAME`` over the CMU files: :func:`add_data_arguments`, the
+    script's ``options``, ``--out`` (default ``runs/NAME``; None when ``out_help`` describes another default),
+    ``--rerun`` and ``--no-progress``; INFO logging on stderr; then ``check(args)`` (raises ValueError on a bad
+    option; what it returns is passed on) and :func:`benchmark_sequences`.
+
+    Returns:
+        ``(args, folder, files, checked)``, or None after printing ``NAME: error: ...`` on stderr (exit status 2).
+    """
+    from nrsfm.errors import NRSfMError
+
+    p = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=doc.split("\n\n")[0])
+    add_data_arguments(p, jobs_help)
+    if options is not None:
+        options(p)
+    p.add_argument("--out", default=None if out_help else f"runs/{name}",
+                   help=out_help or f"output folder (default: runs/{name})")
+    add_run_arguments(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    try:
+        checked = check(args) if check is not None else None
+        folder, files = benchmark_sequences(args.root, args.sequences, name)
+    except (NRSfMError, ValueError) as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return None
+    return args, folder, files, checked
 
 
 def load_benchmark_sequence(job: str):

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_run_arguments, code_hash, config_hash, markdown_table, run_cells_from_args,
-                               run_metadata, write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
+                               write_json, write_text_atomic)
 
 log = logging.getLogger("benchmarks.consensus_weight")
 
@@ -80,21 +80,16 @@ def choose_weight(results: list[dict], grid: list[float]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import REFERENCE, add_data_arguments, benchmark_sequences, job_identity
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import REFERENCE, job_identity, parse_data_benchmark
     from nrsfm.solvers import get_solver
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.consensus_weight", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel sequences (joblib)")
-    p.add_argument("--methods", default="empnd,pr", help="the two solvers averaged (default: empnd,pr)")
-    p.add_argument("--grid", default="0.5:1:0.05", help="weights of the first solver (default 0.5:1:0.05)")
-    p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
-    p.add_argument("--out", default=None, help="output folder (default: runs/consensus_weight[-missingX])")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    try:
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--methods", default="empnd,pr", help="the two solvers averaged (default: empnd,pr)")
+        p.add_argument("--grid", default="0.5:1:0.05", help="weights of the first solver (default 0.5:1:0.05)")
+        p.add_argument("--missing", type=float, default=0.0, help="fraction of entries to mark missing (fixed seed)")
+
+    def check(args: argparse.Namespace) -> tuple[tuple[str, ...], list[float]]:
+        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
         if len(methods) != 2:
             raise ValueError(f"--methods: expected two comma-separated solvers, got {args.methods!r}")
         for m in methods:
@@ -102,10 +97,14 @@ def main(argv: list[str] | None = None) -> int:
         grid = parse_grid(args.grid)
         if not 0 <= args.missing < 1:
             raise ValueError(f"--missing: expected a fraction in [0, 1), got {args.missing}")
-        folder, files = benchmark_sequences(args.root, args.sequences, "consensus_weight")
-    except (NRSfMError, ValueError) as exc:
-        print(f"consensus_weight: error: {exc}", file=sys.stderr)
+        return methods, grid
+
+    parsed = parse_data_benchmark("consensus_weight", __doc__, argv, jobs_help="parallel sequences (joblib)",
+                                  options=options, check=check,
+                                  out_help="output folder (default: runs/consensus_weight[-missingX])")
+    if parsed is None:
         return 2
+    args, folder, files, (methods, grid) = parsed
     t0 = time.perf_counter()
     out = Path(args.out or f"runs/consensus_weight{'-missing' + str(args.missing) if args.missing else ''}")
     code = code_hash(__file__, Path(__file__).with_name("classic.py"))

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_run_arguments, code_hash, config_hash, markdown_table, run_cells_from_args,
-                               run_metadata, write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
+                               write_json, write_text_atomic)
 
 log = logging.getLogger("benchmarks.empnd_starts")
 
@@ -73,26 +73,24 @@ def run_one(job: str, starts: tuple[str, ...]) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import REFERENCE, add_data_arguments, benchmark_sequences, job_identity
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import REFERENCE, job_identity, parse_data_benchmark
     from nrsfm.solvers.empnd import INITS
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.empnd_starts", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel sequences (joblib)")
-    p.add_argument("--starts", default="auto,spm,pr",
-                   help=f"comma-separated EM-PND starts among {', '.join(INITS)} (default: auto,spm,pr)")
-    p.add_argument("--out", default="runs/empnd_starts", help="output folder (default: runs/empnd_starts)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    starts = tuple(s.strip() for s in args.starts.split(",") if s.strip())
-    try:
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--starts", default="auto,spm,pr",
+                       help=f"comma-separated EM-PND starts among {', '.join(INITS)} (default: auto,spm,pr)")
+
+    def check(args: argparse.Namespace) -> tuple[str, ...]:
+        starts = tuple(s.strip() for s in args.starts.split(",") if s.strip())
         if not starts or any(s not in INITS for s in starts):
             raise ValueError(f"--starts: expected names among {', '.join(INITS)}, got {args.starts!r}")
-        folder, files = benchmark_sequences(args.root, args.sequences, "empnd_starts")
-    except (NRSfMError, ValueError) as exc:
-        print(f"empnd_starts: error: {exc}", file=sys.stderr)
+        return starts
+
+    parsed = parse_data_benchmark("empnd_starts", __doc__, argv, jobs_help="parallel sequences (joblib)",
+                                  options=options, check=check)
+    if parsed is None:
         return 2
+    args, folder, files, starts = parsed
     t0 = time.perf_counter()
     log.info("empnd_starts: %d sequences x %d starts, %d jobs", len(files), len(starts), args.jobs)
     out = Path(args.out)

@@ -17,14 +17,13 @@ of ``benchmarks.classic``. Solves are saved and resumed as in ``benchmarks.class
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import (add_run_arguments, code_hash, config_hash, markdown_table, run_cells_from_args,
-                               run_metadata, write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
+                               write_json, write_text_atomic)
 
 log = logging.getLogger("benchmarks.pr_sweep")
 
@@ -59,20 +58,12 @@ def run_one(path: str, label: str, config: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import add_data_arguments, benchmark_sequences, job_identity, plot_results
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import job_identity, parse_data_benchmark, plot_results
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.pr_sweep", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel solves (joblib)")
-    p.add_argument("--out", default="runs/pr_sweep", help="output folder (default: runs/pr_sweep)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        folder, files = benchmark_sequences(args.root, args.sequences, "pr_sweep")
-    except (NRSfMError, ValueError) as exc:
-        print(f"pr_sweep: error: {exc}", file=sys.stderr)
+    parsed = parse_data_benchmark("pr_sweep", __doc__, argv, jobs_help="parallel solves (joblib)")
+    if parsed is None:
         return 2
+    args, folder, files, _ = parsed
     t0 = time.perf_counter()
     log.info("pr_sweep: %d sequences x %d configurations, %d jobs", len(files), len(CONFIGS), args.jobs)
     out = Path(args.out)

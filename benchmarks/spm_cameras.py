@@ -26,14 +26,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_run_arguments, code_hash, config_hash, markdown_table, run_cells_from_args,
-                               run_metadata, write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
+                               write_json, write_text_atomic)
 
 log = logging.getLogger("benchmarks.spm_cameras")
 
@@ -125,30 +124,26 @@ def _cell(s: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import (SPM_REFERENCE, SPM_ROTATION_REFERENCE, add_data_arguments, benchmark_sequences,
-                                    job_identity)
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import SPM_REFERENCE, SPM_ROTATION_REFERENCE, job_identity, parse_data_benchmark
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.spm_cameras", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel sequences (joblib)")
-    p.add_argument("--lams", default="0,0.3,3,30,300", help="weights of the orthonormality residual")
-    p.add_argument("--iters", type=int, default=300, help="L-BFGS iterations of each refinement (default 300)")
-    p.add_argument("--starts", type=int, default=0,
-                   help="random starts of the camera step's refinement whose minima are scored (default 0: none)")
-    p.add_argument("--out", default="runs/spm_cameras", help="output folder (default: runs/spm_cameras)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        lams = parse_lams(args.lams)
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--lams", default="0,0.3,3,30,300", help="weights of the orthonormality residual")
+        p.add_argument("--iters", type=int, default=300, help="L-BFGS iterations of each refinement (default 300)")
+        p.add_argument("--starts", type=int, default=0,
+                       help="random starts of the camera step's refinement whose minima are scored (default 0: none)")
+
+    def check(args: argparse.Namespace) -> list[float]:
         if args.iters < 1:
             raise ValueError(f"--iters: expected a positive number of iterations, got {args.iters}")
         if args.starts < 0:
             raise ValueError(f"--starts: expected a number of random starts >= 0, got {args.starts}")
-        folder, files = benchmark_sequences(args.root, args.sequences, "spm_cameras")
-    except (NRSfMError, ValueError) as exc:
-        print(f"spm_cameras: error: {exc}", file=sys.stderr)
+        return parse_lams(args.lams)
+
+    parsed = parse_data_benchmark("spm_cameras", __doc__, argv, jobs_help="parallel sequences (joblib)",
+                                  options=options, check=check)
+    if parsed is None:
         return 2
+    args, folder, files, lams = parsed
     t0 = time.perf_counter()
     out = Path(args.out)
     key = {"lams": lams, "iters": args.iters, "starts": args.starts}

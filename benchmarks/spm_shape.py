@@ -16,12 +16,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import (add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata,
-                               write_csv, write_json, write_text_atomic)
+from benchmarks.common import (code_hash, markdown_table, run_cells_from_args, run_metadata, write_csv, write_json,
+                               write_text_atomic)
 
 log = logging.getLogger("benchmarks.spm_shape")
 
@@ -55,24 +54,17 @@ def _cell(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import (SPM_REFERENCE, SPM_ROTATION_REFERENCE, add_data_arguments, benchmark_sequences,
-                                    job_identity)
-    from nrsfm.errors import NRSfMError
+    from benchmarks.classic import SPM_REFERENCE, SPM_ROTATION_REFERENCE, job_identity, parse_data_benchmark
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.spm_shape", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "parallel cells (joblib)")
-    p.add_argument("--smooth", default="300,1000,3000",
-                   help="frame counts of the smooth-camera synthetic sequences (default 300,1000,3000; 0: none)")
-    p.add_argument("--out", default="runs/spm_shape", help="output folder (default: runs/spm_shape)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        frames = parse_frames(args.smooth)
-        folder, files = benchmark_sequences(args.root, args.sequences, "spm_shape")
-    except (NRSfMError, ValueError) as exc:
-        print(f"spm_shape: error: {exc}", file=sys.stderr)
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--smooth", default="300,1000,3000",
+                       help="frame counts of the smooth-camera synthetic sequences (default 300,1000,3000; 0: none)")
+
+    parsed = parse_data_benchmark("spm_shape", __doc__, argv, options=options,
+                                  check=lambda args: parse_frames(args.smooth))
+    if parsed is None:
         return 2
+    args, folder, files, frames = parsed
     t0 = time.perf_counter()
     out = Path(args.out)
     jobs = [f"synthetic:{f}{noise}" for f in frames for noise in ("", ":0.01")] + files
