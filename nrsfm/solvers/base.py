@@ -384,7 +384,7 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
     return history[-1], b
 
 
-def noise_rank(s: np.ndarray, shape: tuple[int, int], *, min_gap: float = 2.0) -> int:
+def noise_rank(s: np.ndarray, shape: tuple[int, int], *, min_gap: float = 1.5) -> int:
     """The rank of noisy low-rank tracks from the singular values ``s`` of a centred `(2F, P)` W, or 0.
 
     Gavish & Donoho's hard threshold for white noise of unknown level ("The optimal hard threshold for singular
@@ -394,12 +394,14 @@ def noise_rank(s: np.ndarray, shape: tuple[int, int], *, min_gap: float = 2.0) -
     kept values stand clear of the rest (the last kept at least ``min_gap`` times the first dropped), i.e. where
     W looks like a low-rank signal plus noise. Real motion capture is not: its spectrum decays without a gap (the
     CMU files, alone or with 0.3-3% added noise: 1.04-1.39), while the synthetic low-rank tracks and faces with
-    1-5% noise show 2.0-177 where the threshold finds their rank. The median is that of every singular value, so
+    1-5% noise show 1.5-177 where the threshold finds their rank (with 5% noise some show 1.2-1.4 and keep the
+    cap; ``min_gap`` 2, the first choice, left five more of them at the cap: e3D .41-.72 where their K gives
+    .08-.49, ``benchmarks.auto_k``). The median is that of every singular value, so
     a rank above half of P - 1 is under-counted (17 points of rank 9 with 1% noise: 7, or no gap). Taking the
-    median again over the values beyond the count until it stops changing finds 9 there, but CSF2 at that K did
-    worse on two of three such sequences (``benchmarks.classic.long_sequence(F, 0.01)``, F = 300 / 1000 / 3000:
-    e3D .0445 / .0314 / .6248 against .5671 / .0181 / .1135, EM-PPCA .0308 / .0234 / .6815 against .0327 /
-    .0236 / .0579), so it was not kept.
+    median again over the values beyond the count until it stops changing finds 9 there, but CSF2 at that K was
+    better on one such sequence, the same on one and far worse on one (``benchmarks.classic.long_sequence(F,
+    0.01)``, F = 300 / 1000 / 3000: e3D .0445 / .0314 / .6248 against .5671 / .0307 / .1135 with this rule;
+    EM-PPCA .0308 / .0234 / .6815 against .0327 / .0235 / .0579), so it was not kept.
 
     Args:
         s: singular values of the centred W, descending.

@@ -85,8 +85,8 @@ the cap, 8. ``python -m benchmarks.auto_k`` measures the rule against every
 K (CSF2, camera-frame e3D, 300 x 41 synthetic tracks; see
 ``benchmarks/RESULTS.md``): with a smoothly turning camera and 1% noise the
 cap (the rule before session 26) gave .38-.81 and the threshold's K gives
-.009-.046; at 5% noise 2 of 9 sequences show a gap (.035 and .056 against
-.46 and .43), the rest keep the cap; the noisy synthetic faces .0005-.0007
+.009-.046; at 5% noise 7 of 9 sequences pass the gap test (.035-.49
+against .41-.72), the other 2 keep the cap; the noisy synthetic faces .0005-.0007
 against .12-.61. Noise-free, the earlier rule's extra basis shape on rank
 3K cost .0018-.2348 where K gives .0006-.0036 (one exception: .3367 at
 K = 4 against .0184 at 5). With random cameras and 1% noise the two are
