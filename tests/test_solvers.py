@@ -301,6 +301,11 @@ def test_auto_k_finds_the_rank_of_noisy_low_rank_tracks():
     s = np.linalg.svd(full - full.mean(axis=1, keepdims=True), compute_uv=False)
     assert noise_rank(s, full.shape) == 0 and auto_k(full) == 8
     assert noise_rank(np.zeros(5), (10, 6)) == noise_rank(np.ones(1), (2, 2)) == 0
+    # rank 6 of 9: the median is the signal's and the first count (3) falls short; the median beyond it disagrees
+    w = lowrank_sequence(30, 10, 2, seed=0).measurement_matrix()
+    w = w + 0.01 * np.sqrt(((w - w.mean(axis=1, keepdims=True)) ** 2).mean()) * rng.standard_normal(w.shape)
+    s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
+    assert noise_rank(s, w.shape) == 0 and auto_k(w) == 3  # its gap (1.65) alone would pass
 
 
 def test_csf2_in_pixel_units_and_with_the_automatic_k():
