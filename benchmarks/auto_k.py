@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, markdown_table, run_cells_from_args, run_metadata, write_csv, write_json,
-                               write_text_atomic)
+from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
 log = logging.getLogger("benchmarks.auto_k")
 
@@ -135,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         path, noise = file_job(job)
         return f"{Path(path).stem}-{noise}", {**job_identity(path), "noise": noise}
 
-    cells = [(f"{label_and_identity(j)[0]}-K{k}", {**label_and_identity(j)[1], "K": k, "code": code}, (j, k))
+    named = {j: label_and_identity(j) for j in jobs}  # a file's bytes are hashed once
+    cells = [(f"{named[j][0]}-K{k}", {**named[j][1], "K": k, "code": code}, (j, k))
              for j in jobs for k in range(1, info[j]["cap"] + 1)]
     done = run_cells_from_args(args, cells, run_one, out, "auto_k")
     if done is None:
@@ -172,12 +172,9 @@ def main(argv: list[str] | None = None) -> int:
             f"Automatic K against the previous rule: better (by more than 1%) on {better}, worse on {worse}, "
             f"the same on {len(summary) - better - worse} of {len(summary)} sequences; within 10% of the best K "
             f"on {at_best}.\n")
-    print(text)
-    write_csv(out / "auto_k.csv", rows)
-    write_json(out / "auto_k.json", {"meta": run_metadata(
+    write_outputs(out, "auto_k", text, rows, run_metadata(
         benchmark="csf2 automatic K", jobs=args.jobs, data=str(folder or "synthetic only"), cells_reused=reused,
-        wall_s=time.perf_counter() - t0), "rows": rows, "summary": summary})
-    write_text_atomic(out / "auto_k.md", text)
+        wall_s=time.perf_counter() - t0), summary=summary)
     return 0
 
 

@@ -169,6 +169,11 @@ def _non_negative(text: str) -> int:
     return value
 
 
+def data_where(folder: Path | None, files: list[str]) -> str:
+    """What a benchmark ran on, for its table's title: the CMU files, or the stand-ins."""
+    return f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+
+
 def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
     """The ``--root``, ``--jobs`` and ``--sequences`` options of the benchmarks over the CMU files (read with
     :func:`benchmark_sequences`)."""

@@ -181,6 +181,16 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     write_text_atomic(path, buf.getvalue())
 
 
+def write_outputs(out: Path, name: str, text: str, rows: list[dict[str, Any]], meta: dict[str, Any],
+                  **extra: Any) -> None:
+    """A benchmark's results: ``text`` (Markdown) printed and written to ``out/NAME.md``, ``rows`` to
+    ``out/NAME.csv``, and ``{"meta": meta, "rows": rows, **extra}`` to ``out/NAME.json``."""
+    print(text)
+    write_csv(out / f"{name}.csv", rows)
+    write_json(out / f"{name}.json", {"meta": meta, "rows": rows, **extra})
+    write_text_atomic(out / f"{name}.md", text)
+
+
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     def fmt(v: Any) -> str:
         if v is None:

@@ -29,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
-                               write_json, write_text_atomic)
+from benchmarks.common import code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
 log = logging.getLogger("benchmarks.consensus_weight")
 
@@ -80,7 +79,7 @@ def choose_weight(results: list[dict], grid: list[float]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import REFERENCE, job_identity, parse_data_benchmark
+    from benchmarks.classic import REFERENCE, data_where, job_identity, parse_data_benchmark
     from nrsfm.solvers import get_solver
 
     def options(p: argparse.ArgumentParser) -> None:
@@ -138,16 +137,13 @@ def main(argv: list[str] | None = None) -> int:
                      **{f"e3d_a{a:g}": v for a, v in zip(grid, e)}})
     md = markdown_table(["sequence", *(f"a = {a:g}" for a in grid), "held-out a", "held-out e3D",
                          "best published"], table)
-    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    where = data_where(folder, files)
     text = (f"### Consensus weight: camera-frame e3D of a * {methods[0]} + (1 - a) * {methods[1]} ({where}, "
             f"{100 * args.missing:.0f}% missing)\n\n{md}\n\nWeight chosen on all files: a = {grid[whole]:g} "
             f"(the held-out column chooses it on the other files only).\n")
-    print(text)
-    write_csv(out / "consensus_weight.csv", rows)
-    write_json(out / "consensus_weight.json", {"meta": run_metadata(
+    write_outputs(out, "consensus_weight", text, rows, run_metadata(
         benchmark="consensus weight", methods=list(methods), grid=grid, missing=args.missing, jobs=args.jobs,
-        data=str(folder or "stand-ins"), whole_set_weight=grid[whole], cells_reused=reused), "rows": rows})
-    write_text_atomic(out / "consensus_weight.md", text)
+        data=str(folder or "stand-ins"), whole_set_weight=grid[whole], cells_reused=reused))
     print(f"wrote {out}/consensus_weight.md, consensus_weight.csv, consensus_weight.json "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0

@@ -73,7 +73,7 @@ def run_one(job: str, starts: tuple[str, ...]) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import REFERENCE, job_identity, parse_data_benchmark
+    from benchmarks.classic import REFERENCE, data_where, job_identity, parse_data_benchmark
     from nrsfm.solvers.empnd import INITS
 
     def options(p: argparse.ArgumentParser) -> None:
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         table.append([name, *(fmt(label) for label in labels), f"{min(published):.4f}" if published else "–"])
     md = markdown_table(["sequence", *(f"{label}: e3D (cost)" if not label.startswith("mean") else f"{label}: e3D"
                                        for label in labels), "best published"], table)
-    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    where = data_where(folder, files)
     print(f"### EM-PND's start ({where}; camera-frame e3D, final PND cost per dimension)\n\n{md}\n")
     write_csv(out / "empnd_starts.csv", rows)
     write_json(out / "empnd_starts.json", {"meta": run_metadata(jobs=args.jobs, data=str(folder or "stand-ins"),

@@ -58,7 +58,7 @@ def run_one(path: str, label: str, config: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import job_identity, parse_data_benchmark, plot_results
+    from benchmarks.classic import data_where, job_identity, parse_data_benchmark, plot_results
 
     parsed = parse_data_benchmark("pr_sweep", __doc__, argv, jobs_help="parallel solves (joblib)")
     if parsed is None:
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         table.append([label, *(f"{r['e3d_camera']:.4f}" if r["status"] == "ok" else f"not run: {r['why']}"
                                for r in rs), f"{sum(r.get('seconds', 0.0) for r in rs):.1f}"])
     md = markdown_table(["configuration (camera-frame e3D)", *names, "time (s), all files"], table)
-    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    where = data_where(folder, files)
     print(f"### PR regulariser and start ({where}, one thread per solve)\n\n{md}\n")
     write_csv(out / "pr_sweep.csv", [{k: v for k, v in r.items() if k != "params"} | {"params": str(r["params"])}
                                      for r in rows])

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
-                               write_json, write_text_atomic)
+                               write_outputs)
 
 log = logging.getLogger("benchmarks.spm_cameras")
 
@@ -124,7 +124,8 @@ def _cell(s: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import SPM_REFERENCE, SPM_ROTATION_REFERENCE, job_identity, parse_data_benchmark
+    from benchmarks.classic import (SPM_REFERENCE, SPM_ROTATION_REFERENCE, data_where, job_identity,
+                                    parse_data_benchmark)
 
     def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--lams", default="0,0.3,3,30,300", help="weights of the orthonormality residual")
@@ -172,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             minima_table.append([name, f"{m['cost']:.4e}", f"{m['starts']} of {r['starts']}",
                                  "yes" if lowest else "", _cell(m), f"{m['nuclear'] / r['spm']['nuclear']:.4f}"])
     md = markdown_table(["sequence", "SPM", *(f"lam = {v:g}" for v in lams), "authors"], table)
-    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    where = data_where(folder, files)
     text = (f"### SPM's cameras refined by the nuclear norm of S# ({where}, {args.iters} L-BFGS iterations)\n\n"
             f"Each cell: object-frame e3D / camera error / camera-frame e3D.\n\n{md}\n")
     if args.starts:
@@ -181,15 +182,11 @@ def main(argv: list[str] | None = None) -> int:
                  f"step's minimum over SPM's.\n\n"
                  + markdown_table(["sequence", "cost", "starts", "SPM's", "scores", "nuclear norm / SPM's"],
                                   minima_table) + "\n")
-    print(text)
-    write_csv(out / "spm_cameras.csv", rows)
-    write_json(out / "spm_cameras.json", {"meta": run_metadata(
+    write_outputs(out, "spm_cameras", text, rows, run_metadata(
         benchmark="spm cameras", lams=lams, iters=args.iters, jobs=args.jobs, data=str(folder or "stand-ins"),
-        cells_reused=reused, wall_s=time.perf_counter() - t0, starts=args.starts), "rows": rows,
-        "minima": minima_rows})
+        cells_reused=reused, wall_s=time.perf_counter() - t0, starts=args.starts), minima=minima_rows)
     if args.starts:
         write_csv(out / "spm_cameras_minima.csv", minima_rows)
-    write_text_atomic(out / "spm_cameras.md", text)
     return 0
 
 

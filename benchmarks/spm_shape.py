@@ -19,8 +19,7 @@ import logging
 import time
 from pathlib import Path
 
-from benchmarks.common import (code_hash, markdown_table, run_cells_from_args, run_metadata, write_csv, write_json,
-                               write_text_atomic)
+from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
 log = logging.getLogger("benchmarks.spm_shape")
 
@@ -54,7 +53,8 @@ def _cell(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import SPM_REFERENCE, SPM_ROTATION_REFERENCE, job_identity, parse_data_benchmark
+    from benchmarks.classic import (SPM_REFERENCE, SPM_ROTATION_REFERENCE, data_where, job_identity,
+                                    parse_data_benchmark)
 
     def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--smooth", default="300,1000,3000",
@@ -83,16 +83,13 @@ def main(argv: list[str] | None = None) -> int:
                    if name in SPM_REFERENCE else "–")
         table.append([name, *(_cell(r) for r in pair), authors])
     md = markdown_table(["sequence", *(f"SPM, {o}" for o in OBJECTIVES), "authors"], table)
-    where = f"{len(files)} CMU files" if folder is not None else "synthetic stand-ins, no CMU data"
+    where = data_where(folder, files)
     text = (f"### SPM's shape step: nuclear norm against the partial sum beyond K ({where}, smooth-camera "
             f"sequences of {', '.join(map(str, frames)) or 'no'} frames)\n\n"
             f"Each cell: object-frame e3D / camera error / camera-frame e3D (seconds).\n\n{md}\n")
-    print(text)
-    write_csv(out / "spm_shape.csv", rows)
-    write_json(out / "spm_shape.json", {"meta": run_metadata(
+    write_outputs(out, "spm_shape", text, rows, run_metadata(
         benchmark="spm shape", smooth=frames, jobs=args.jobs, data=str(folder or "stand-ins"), cells_reused=reused,
-        wall_s=time.perf_counter() - t0), "rows": rows})
-    write_text_atomic(out / "spm_shape.md", text)
+        wall_s=time.perf_counter() - t0))
     return 0
 
 
