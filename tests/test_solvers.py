@@ -143,8 +143,8 @@ def test_auto_k_with_missing_points_matches_complete_tracks():
     rng = np.random.default_rng(0)  # exact rank 5, nearly rigid (like the shark): K = 3
     w = (rng.standard_normal((400, 5)) * np.geomspace(1, 3e-3, 5)) @ rng.standard_normal((5, 50))
     assert auto_k(w) == auto_k(w + rng.standard_normal((400, 1)), np.repeat(rng.random((200, 50)) > .25, 2, 0)) == 3
-    noisy = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)  # full rank: the cap
-    assert auto_k(noisy.measurement_matrix(), np.repeat(noisy.weights > 0, 2, axis=0)) == 8
+    noisy = lowrank_sequence(60, 30, 2, noise=0.01, missing=0.2, seed=0)  # no exact rank; the noise floor's: 6
+    assert auto_k(noisy.measurement_matrix(), np.repeat(noisy.weights > 0, 2, axis=0)) == 2
     # PR imputes and starts with that K, not with CSF2's rule on the (full-rank) completion
     rec = solve(seq, "pr", max_iter=1)
     assert rec.info["init_K"] == 4 and rec.info["impute_rank"] == 12
@@ -306,6 +306,27 @@ def test_auto_k_finds_the_rank_of_noisy_low_rank_tracks():
     w = w + 0.01 * np.sqrt(((w - w.mean(axis=1, keepdims=True)) ** 2).mean()) * rng.standard_normal(w.shape)
     s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
     assert noise_rank(s, w.shape) == 0 and auto_k(w) == 3  # its gap (1.65) alone would pass
+
+
+def test_noise_visible_rank_finds_the_noise_floor_with_missing_points():
+    """Noisy tracks with missing points have no exact rank; the automatic K took its cap (8) there. The ladder of
+    fits shows the rank where the pseudo singular values fall to a flat floor; without a floor it gives 0."""
+    from nrsfm.solvers.base import noise_visible_rank
+
+    seq = lowrank_sequence(150, 30, 3, cameras="smooth", seed=2, noise=0.01, missing=0.2)
+    w, mask = seq.measurement_matrix(), np.repeat(seq.weights > 0, 2, axis=0)
+    assert noise_visible_rank(w, mask, 18) == 9
+    rec = solve(seq, "csf2")  # auto_k: 9 = 3K
+    assert rec.info["K"] == 3 and e3d(rec.points_3d, seq.points_3d) < 0.05
+    assert e3d(solve(seq, "csf2", K=8).points_3d, seq.points_3d) > 0.3
+    rng = np.random.default_rng(1)
+    mask = np.repeat(rng.random((100, 40)) > 0.2, 2, axis=0)
+    w = (rng.standard_normal((200, 5)) * np.geomspace(1, 0.05, 5)) @ rng.standard_normal((5, 40))
+    assert noise_visible_rank(w + 0.01 * rng.standard_normal(w.shape), mask, 18) == 5  # nearly rigid, like the shark
+    decay = (rng.standard_normal((200, 30)) * np.geomspace(1, 1e-3, 30)) @ rng.standard_normal((30, 40))
+    assert noise_visible_rank(decay, mask, 18) == 0  # decays without a floor (motion capture): no rank
+    assert noise_visible_rank(rng.standard_normal((200, 40)), mask, 18) == 0  # noise alone: no gap
+    assert noise_visible_rank(w, mask, 3) == 0  # too few ranks to see a floor beyond the gap
 
 
 def test_csf2_in_pixel_units_and_with_the_automatic_k():

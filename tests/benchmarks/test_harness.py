@@ -257,6 +257,19 @@ def test_auto_k_scores_every_k_and_each_rule(tmp_path, capsys, monkeypatch):
     rec = solve(smooth, "csf2")  # the cell is the solver's own result with the automatic K
     assert rec.info["K"] == 3 and noisy["e3d_auto"] == pytest.approx(e3d(rec.points_3d, smooth.points_3d), rel=1e-6)
     assert auto_k.previous_rule(seq.measurement_matrix()) == 3  # rank 6: ceil(6 / 3) + 1, at the cap
+    # with missing entries a CMU file runs at the rules' K and the cap only (here all 3: too few points for rank 6)
+    monkeypatch.setattr(auto_k, "SMOOTH", [])
+    missing = tmp_path / "missing"
+    assert auto_k.main(["--root", str(tmp_path / "data"), "--out", str(missing), "--no-progress",
+                        "--missing", "0.2"]) == 0
+    text = capsys.readouterr().out
+    assert "20% missing" in text and "visible rank / noise rank" in text and "| tiny | 0 / – | " in text
+    data = json.loads((missing / "auto_k.json").read_text())
+    assert [(r["sequence"], r["K"]) for r in data["rows"]] == [("tiny", 3), ("tiny+0.01", 3)]
+    assert data["meta"]["missing"] == 0.2
+    assert auto_k.make_sequence("smooth:2:1:0.01", 0.2).weights.mean() == pytest.approx(0.8, abs=0.01)
+    assert auto_k.main(["--root", str(tmp_path / "data"), "--out", str(missing), "--missing", "1.5"]) == 2
+    assert "--missing: expected a fraction in [0, 1), got 1.5" in capsys.readouterr().err
 
 
 def test_run_cells_saves_each_cell_and_resumes_after_an_interruption(tmp_path):
