@@ -679,8 +679,14 @@ def test_consensus_computes_the_shared_csf2_start_once(monkeypatch):
     csf2.csf2_start(seq, 0, **kw)  # the cache ended with the block
     assert len(calls) == 3
     calls.clear()
+    ranks = []
+    real_rank = csf2.noise_visible_rank
+    monkeypatch.setattr(csf2, "noise_visible_rank", lambda *a, **kw: ranks.append(real_rank(*a, **kw)) or ranks[-1])
     solve(seq, "consensus")  # EM-PND's start with missing points is PR's occlusion-aware start
     assert sum(c.camera_rounds == 50 and c.round_iter == 5 for c in calls) == 1
+    assert len(ranks) == 1  # PR's automatic K and CSF2's (in pixels / a power of two) share the noise rank
+    solve(seq, "csf2", **kw)
+    assert len(ranks) == 2  # outside the consensus: computed again
 
 
 def test_consensus_refuses_bad_settings_and_names_itself_in_component_errors():
