@@ -98,18 +98,17 @@ def rank_info(job: str, missing: float = 0.0) -> dict:
     """The automatic rule's inputs and outputs on a job's W: numerical rank (with missing entries: the visible
     entries' exact rank), noise rank, K (new and old), cap."""
     from nrsfm.solvers.base import noise_rank, noise_visible_rank, visible_rank
-    from nrsfm.solvers.csf2 import auto_k, auto_k_max_rank
+    from nrsfm.solvers.csf2 import auto_k, auto_k_max_rank, k_for_rank
 
     seq = make_sequence(job, missing)
     w = seq.measurement_matrix()
     cap = max(1, min(8, (min(w.shape) - 1) // 3))
-    if missing > 0:
+    if missing > 0:  # auto_k's steps, one by one (each ladder of fits once)
         mask = np.repeat(seq.weights > 0, 2, axis=0)
-        fit = visible_rank(w, mask, auto_k_max_rank(w))
-        rank = fit[0] or noise_visible_rank(w, mask, auto_k_max_rank(w))
-        previous = max(1, min(cap, -(-fit[0] // 3) + (fit[0] % 3 != 0))) if fit[0] else cap
-        return {"numerical_rank": fit[0], "noise_rank": 0 if fit[0] else rank, "auto_k": auto_k(w, mask, fit=fit),
-                "previous_k": previous, "cap": cap}
+        exact = visible_rank(w, mask, auto_k_max_rank(w))[0]
+        noisy = 0 if exact else noise_visible_rank(w, mask, auto_k_max_rank(w))
+        return {"numerical_rank": exact, "noise_rank": noisy, "auto_k": k_for_rank(exact or noisy, cap),
+                "previous_k": k_for_rank(exact, cap), "cap": cap}
     s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
     return {"numerical_rank": int(np.count_nonzero(s > 1e-6 * s[0])), "noise_rank": noise_rank(s, w.shape),
             "auto_k": auto_k(w), "previous_k": previous_rule(w), "cap": cap}
@@ -170,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
         return f"{Path(path).stem}-{noise}", {**job_identity(path), "noise": noise}
 
     named = {j: label_and_identity(j) for j in jobs}  # a file's bytes are hashed once
+
     def ks(j: str) -> list[int]:  # with missing entries every K only where the rule changed (module docstring)
         if missing and (file_job(j) is not None or info[j]["auto_k"] == info[j]["previous_k"]):
             return sorted({info[j]["auto_k"], info[j]["previous_k"], info[j]["cap"]})
@@ -215,8 +215,8 @@ def main(argv: list[str] | None = None) -> int:
             f"the same on {len(summary) - better - worse} of {len(summary)} sequences; within 10% of the best K "
             f"on {at_best}.\n")
     write_outputs(out, "auto_k", text, rows, run_metadata(
-        benchmark="csf2 automatic K", missing=missing, jobs=args.jobs, data=str(folder or "synthetic only"), cells_reused=reused,
-        wall_s=time.perf_counter() - t0), summary=summary)
+        benchmark="csf2 automatic K", missing=missing, jobs=args.jobs, data=str(folder or "synthetic only"),
+        cells_reused=reused, wall_s=time.perf_counter() - t0), summary=summary)
     return 0
 
 
