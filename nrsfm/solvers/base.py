@@ -356,20 +356,26 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
         return np.inf, b
     history = [relative(cost)]
     damping = 1e-4
-    eye = np.eye(n_points)
+    upper = np.triu_indices(rank)  # J^T J's (i, j) and (j, i) blocks are equal: one product for both
+    n_free = n_points - rank - 1  # directions a row of B can move in that change the fit
     for _ in range(max_iter):
-        if history[-1] < rel_tol:
+        if history[-1] < rel_tol or n_free < 1:
             break
         ar = a[:, :rank]  # (F, r, 2)
-        grad = -np.einsum("fki,fip->kp", ar, e)  # (r, P)
-        # Kaufman: J^T J = sum_f (sum_rows a a^T) kron (I - P_f) on the visible points
-        proj = eye[None] * vis[:, :, None] - bd.transpose(0, 2, 1) @ np.linalg.solve(gram, bd)  # (F, P, P)
-        aa = ar @ ar.transpose(0, 2, 1)  # (F, r, r)
-        jtj = (aa.reshape(len(aa), -1).T @ proj.reshape(len(proj), -1)).reshape(rank, rank, n_points, n_points)
-        jtj = jtj.transpose(0, 2, 1, 3).reshape(rank * n_points, rank * n_points)
+        # the cost depends on the row space of [B; 1] alone: steps along its orthogonal complement Q
+        q = np.linalg.qr(np.vstack([b, ones]).T, mode="complete")[0][:, rank + 1:]  # (P, P - r - 1)
+        grad = -np.einsum("fki,fip->kp", ar, e) @ q  # (r, P - r - 1)
+        # Kaufman: J^T J = sum_f (sum_rows a a^T) kron Q^T (diag(vis_f) - P_f) Q, P_f the projection on [B; 1]
+        vq = vis[:, :, None] * q  # (F, P, P - r - 1)
+        c = bd @ vq  # (F, r+1, P - r - 1)
+        proj = q.T @ vq - c.transpose(0, 2, 1) @ np.linalg.solve(gram, c)  # (F, P - r - 1, P - r - 1)
+        blocks = (ar[:, upper[0]] * ar[:, upper[1]]).sum(axis=2).T @ proj.reshape(len(proj), -1)
+        jtj = np.empty((rank, rank, n_free * n_free))
+        jtj[upper], jtj[upper[::-1]] = blocks, blocks
+        jtj = jtj.reshape(rank, rank, n_free, n_free).transpose(0, 2, 1, 3).reshape(rank * n_free, -1)
         diag = np.diag(jtj).copy() + 1e-12 * max(float(np.diag(jtj).max()), 1e-300)
         while damping < 1e10:
-            step = np.linalg.solve(jtj + damping * np.diag(diag), -grad.ravel()).reshape(rank, n_points)
+            step = np.linalg.solve(jtj + damping * np.diag(diag), -grad.ravel()).reshape(rank, n_free) @ q.T
             trial = evaluate(b + step)
             if trial[0] < cost:
                 orthonormal = np.linalg.qr((b + step).T)[0].T  # the same row space, orthonormal rows
