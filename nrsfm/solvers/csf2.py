@@ -255,8 +255,8 @@ def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_to
     With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less
     than ``rel_tol`` of their RMS (:func:`~nrsfm.solvers.base.visible_rank`, on at most ``max_frames`` frames and
     ``max_points`` points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); where none
-    fits, the rank of noisy low-rank tracks (:func:`~nrsfm.solvers.base.noise_visible_rank`, seconds: 5.5-13.7 s
-    for the whole rule on the CMU files with 20% missing, one core), and the cap where there is none.
+    fits, the rank of noisy low-rank tracks (:func:`~nrsfm.solvers.base.noise_visible_rank`, seconds: 4.9 s on
+    drink and 9.2 s on dance with 20% missing for the whole rule, one core), and the cap where there is none.
     """
     cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
     if mask is not None and not mask.all():
