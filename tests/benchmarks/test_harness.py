@@ -233,7 +233,8 @@ def test_spm_shape_compares_both_objectives_on_files_and_smooth_cameras(tmp_path
     tiny = [r for r in rows if r["sequence"] == "tiny"]
     for r in tiny:  # the cells are the solver's own results
         rec = solve(seq, "spm", shape_objective=r["objective"])
-        assert r["e3d_camera"] == pytest.approx(e3d(rec.points_3d, seq.points_3d), rel=1e-6, abs=1e-9)
+        # exact recovery: e3D about 1e-8, its last digits rounding (6e-9 and 8.5e-9 in two runs)
+        assert r["e3d_camera"] == pytest.approx(e3d(rec.points_3d, seq.points_3d), rel=1e-6, abs=1e-7)
     assert spm_shape.main(args + ["--smooth", "2"]) == 2
     assert "--smooth: expected comma-separated frame counts" in capsys.readouterr().err
 
