@@ -330,7 +330,6 @@ def test_noise_visible_rank_finds_the_noise_floor_with_missing_points():
     assert noise_visible_rank(w, mask, 3) == 0  # too few ranks to see a floor beyond the gap
 
 
-
 def test_noise_visible_rank_does_not_depend_on_rounding():
     """The ladder's fits must be minima, not wherever 30 iterations stopped: perturbed by 1e-13 of each entry (as
     another BLAS or thread count rounds), these 5%-noise tracks of rank 12 gave ranks 9, 8, 11 before the
@@ -343,6 +342,7 @@ def test_noise_visible_rank_does_not_depend_on_rounding():
     ranks = [noise_visible_rank(w * (1 + 1e-13 * np.random.default_rng(p).standard_normal(w.shape)), mask, 18)
              for p in range(3)]
     assert ranks == [11, 11, 11]
+
 
 def test_csf2_in_pixel_units_and_with_the_automatic_k():
     seq = lowrank_sequence(120, 25, 2, seed=1, cameras="random")
