@@ -573,8 +573,8 @@ def shared_starts():
     when points are missing (its occlusion-aware form, 50 camera rounds; 10 s of drink with 20% missing). A
     start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the K it chose too,
     where that K given would search the same ranks) and the other settings; the cache ends with the block.
-    So is the noise rank of :func:`auto_k` with missing points (most of :func:`auto_k`'s 4.9 s on drink with 20% missing), which both
-    solvers' automatic K compute.
+    So is the noise rank of :func:`auto_k` with missing points (most of its 4.9 s on drink with 20% missing),
+    which both solvers' automatic K compute.
     """
     token = _SHARED_STARTS.set({})
     try:
