@@ -356,11 +356,29 @@ def test_csf2_second_shape_start_rescues_a_short_nearly_rigid_face():
     from nrsfm.datasets.synthetic import face_sequences
 
     seq = face_sequences(3, 150)[2]  # exact cameras from step 1; X = I stops in a poor minimum of the shape step
-    authors = solve(seq, "csf2", residual_start=False)
-    rec = solve(seq, "csf2")
+    authors = solve(seq, "csf2", residual_start=False, random_starts=0)
+    rec = solve(seq, "csf2", random_starts=0)
     assert authors.info["shape_start"] == "identity" and e3d(authors.points_3d, seq.points_3d) > 0.5
     assert rec.info["shape_start"] == "residual" and rec.info["rmse"] < 0.9 * authors.info["rmse"]
     assert e3d(rec.points_3d, seq.points_3d) < 0.01
+
+
+def test_csf2_random_shape_start_rescues_a_poor_minimum_of_both_deterministic_starts():
+    seq = lowrank_sequence(300, 41, 4, cameras="smooth", seed=1, name="smooth:4:1:0")  # as in benchmarks.auto_k
+    without = solve(seq, "csf2", random_starts=0)
+    rec = solve(seq, "csf2")
+    assert rec.info["K"] == without.info["K"] == 4
+    assert without.info["shape_start"] in ("identity", "residual") and e3d(without.points_3d, seq.points_3d) > 0.2
+    assert rec.info["shape_start"].startswith("random") and rec.info["rmse"] < 0.5 * without.info["rmse"]
+    assert e3d(rec.points_3d, seq.points_3d) < 0.01
+
+
+def test_csf2_random_start_is_kept_only_below_random_accept():
+    seq = lowrank_sequence(300, 41, 4, cameras="smooth", seed=1, name="smooth:4:1:0")
+    rec = solve(seq, "csf2", random_accept=0.1)  # the random start's fit, 0.18 of the RMSE, is not low enough
+    assert rec.info["shape_start"] in ("identity", "residual")
+    with pytest.raises(ValidationError, match="random_accept"):
+        solve(seq, "csf2", random_accept=0.0)
 
 
 def test_csf2_gauss_newton_decreases_the_column_space_cost_to_zero_on_exact_data():
