@@ -531,19 +531,18 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     wc = full - t  # (2F, P)
     omega = dct_basis(n_frames, d)  # (F, d)
     rows, cam_residual, cam_cols = camera_rows(wc, params.energy)
-    x, basis, it, converged, rmse = fit_shape_gn(wc, rows, k, d, max_iter=params.max_iter, tol=params.tol,
-                                                 omega=omega)
+    shape_fit = functools.partial(fit_shape_gn, wc, rows, k, d, max_iter=params.max_iter, tol=params.tol,
+                                  omega=omega)
+    x, basis, it, converged, rmse = shape_fit()
     shape_start = "identity"
     if params.residual_start and k > 1:
-        alt = fit_shape_gn(wc, rows, k, d, max_iter=params.max_iter, tol=params.tol, omega=omega,
-                           x0=residual_start(wc, rows, omega, k))
+        alt = shape_fit(x0=residual_start(wc, rows, omega, k))
         if alt[4] < (1 - params.start_margin) * rmse:
             (x, basis, it, converged, rmse), shape_start = alt, "residual"
     rng = np.random.default_rng(0)
     threshold = params.random_accept * rmse
     for i in range(params.random_starts):
-        alt = fit_shape_gn(wc, rows, k, d, max_iter=params.max_iter, tol=params.tol, omega=omega,
-                           x0=np.linalg.qr(rng.standard_normal((d, k)))[0])
+        alt = shape_fit(x0=np.linalg.qr(rng.standard_normal((d, k)))[0])
         if alt[4] < min(threshold, rmse):
             (x, basis, it, converged, rmse), shape_start = alt, f"random {i}"
     rot = complete_rotation(rows)
