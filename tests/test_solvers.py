@@ -975,6 +975,22 @@ def test_empnd_complete_posterior_matches_the_dense_one():
     torch.testing.assert_close(fast.moment(sr2), dense.moment(sr2), rtol=1e-9, atol=1e-9)
 
 
+def test_empnd_rotated_block_sum_from_six_blocks_matches_the_kronecker_sum():
+    import torch
+
+    from nrsfm.solvers.empnd import _rotated_block_sum, _upper_blocks, _upper_gram_blocks
+
+    rng = np.random.default_rng(2)
+    n, q = 7, 5
+    factor = torch.from_numpy(rng.standard_normal((n, q + 1, 3 * q)))
+    mats = factor.transpose(1, 2) @ factor  # (F, 3q, 3q) symmetric
+    rot = torch.from_numpy(rng.standard_normal((n, 3, 3)))  # any 3x3, not only rotations
+    kron = torch.stack([torch.kron(r, torch.eye(q, dtype=torch.float64)) for r in rot])
+    expected = (kron @ mats @ kron.transpose(1, 2)).sum(dim=0)
+    torch.testing.assert_close(_rotated_block_sum(rot, _upper_blocks(mats, q), q), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(_upper_gram_blocks(factor, q), _upper_blocks(mats, q), rtol=1e-12, atol=1e-12)
+
+
 def test_emppca_recovers_a_noise_free_low_rank_sequence_and_handles_missing_points():
     seq = lowrank_sequence(200, 30, 3, seed=0)
     assert e3d(solve(seq, "emppca", K=3).points_3d, seq.points_3d) < 1e-3

@@ -194,15 +194,33 @@ def _pair_weights(a: torch.Tensor) -> torch.Tensor:
     return (a[:, :, None, :, None] * a[:, None, :, None, :]).reshape(n, 9, 9)
 
 
-def _as_blocks(mats: torch.Tensor, q: int) -> torch.Tensor:
-    """`(F, 3q, 3q)` matrices as `(F*9, q*q)` 3x3 blocks `[f, m, o | a, b]`."""
-    return mats.reshape(-1, 3, q, 3, q).permute(0, 1, 3, 2, 4).reshape(-1, q * q)
+# the 3x3 blocks (m, o), m <= o, of a symmetric (3q, 3q) matrix: all that the rotated sums below need of it
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def _rotated_block_sum(rot: torch.Tensor, blocks: torch.Tensor) -> torch.Tensor:
-    """``sum_f (rot_f kron I_q) B_f (rot_f kron I_q)^T`` as `(9 [j, l], q*q [a, b])` for `(F, 3, 3)` ``rot`` and
-    blocks from :func:`_as_blocks`: one `(9, 9F) x (9F, q^2)` product."""
-    return _pair_weights(rot).permute(1, 0, 2).reshape(9, -1) @ blocks
+def _upper_blocks(mats: torch.Tensor, q: int) -> torch.Tensor:
+    """`(F, 3q, 3q)` symmetric matrices as `(F*6, q*q)`: their blocks (m, o) with m <= o, `[f, (m, o) | a, b]`."""
+    b = mats.reshape(-1, 3, q, 3, q)
+    return torch.stack([b[:, m, :, o, :] for m, o in _UPPER], dim=1).reshape(-1, q * q)
+
+
+def _upper_gram_blocks(factor: torch.Tensor, q: int) -> torch.Tensor:
+    """:func:`_upper_blocks` of ``factor_f^T factor_f`` for `(F, k, 3q)` ``factor``, computing those blocks only."""
+    n = factor.shape[0]
+    rows = [(factor[:, :, m * q:(m + 1) * q].transpose(1, 2) @ factor[:, :, m * q:])  # (F, q, (3-m) q)
+            .reshape(n, q, 3 - m, q).transpose(1, 2) for m in range(3)]
+    return torch.cat(rows, dim=1).reshape(-1, q * q)
+
+
+def _rotated_block_sum(rot: torch.Tensor, blocks: torch.Tensor, q: int) -> torch.Tensor:
+    """``sum_f (rot_f kron I_q) B_f (rot_f kron I_q)^T`` `(3q, 3q)` for `(F, 3, 3)` ``rot`` and symmetric ``B_f``
+    given by :func:`_upper_blocks`. Block (j, l) of the sum is ``C_jl + C_lj^T`` with ``C_jl = sum_{m<o}
+    rot_jm rot_lo B_mo + 1/2 sum_m rot_jm rot_lm B_mm``: one `(9, 6F) x (6F, q^2)` product."""
+    cols = [3 * m + o for m, o in _UPPER]
+    half = torch.tensor([0.5 if m == o else 1.0 for m, o in _UPPER], dtype=rot.dtype, device=rot.device)
+    weights = _pair_weights(rot)[:, :, cols] * half  # (F, 9 [j, l], 6 [m <= o])
+    c = _as_matrix(weights.permute(1, 0, 2).reshape(9, -1) @ blocks, q)
+    return c + c.T
 
 
 def _as_matrix(jl_blocks: torch.Tensor, q: int) -> torch.Tensor:
@@ -231,13 +249,13 @@ class DensePosterior:
         self.mu = (cov @ data.reshape(n, dim, 1)).reshape(n, 3, q) / var
         c5 = cov.reshape(n, 3, q, 3, q)
         self.trace = float((obs * c5[:, 0, :, 0, :]).sum() + (obs * c5[:, 1, :, 1, :]).sum())
-        self._blocks = _as_blocks(cov, q)
+        self._blocks = _upper_blocks(cov, q)
         self._q = q
 
     def moment(self, sr: torch.Tensor) -> torch.Tensor:
         n, q = sr.shape[0], self._q
         y = (sr @ self.mu).reshape(n, 3 * q)
-        return (_as_matrix(_rotated_block_sum(sr, self._blocks), q) + y.T @ y) / n
+        return (_rotated_block_sum(sr, self._blocks, q) + y.T @ y) / n
 
 
 class CompletePosterior:
@@ -286,9 +304,10 @@ class CompletePosterior:
         # aligned-frame second moments: K (Cov_f + mu mu^T) K^T = V diag(g_f) V^T + Xi Xi^T, Xi = [V Psi L^-T, y_f]
         z = z @ v.T  # (F, q, dim)
         xi = torch.cat([z, y[:, None, :]], dim=1)  # (F, q+1, dim), aligned frame
-        # Xi Xi^T per frame as [f, m, o | a, b] blocks: one batched product now, one (9, 9F) x (9F, q^2) product
-        # per cost evaluation (a (3q, F(q+1)) factor product costs 2.3x more per evaluation)
-        self._blocks = _as_blocks(xi.transpose(1, 2) @ xi, q)
+        # Xi Xi^T per frame as its six blocks m <= o: three batched products now, one (9, 6F) x (6F, q^2) product
+        # per cost evaluation (a (3q, F(q+1)) factor product costs 2.3x more per evaluation; all nine blocks, 1.5x
+        # the products and memory)
+        self._blocks = _upper_gram_blocks(xi, q)
         self._g = g
         self._v3 = v3  # (3 [m], q [a], dim [e])
         self._v_rows = v3.permute(0, 2, 1).reshape(3 * dim, q)  # [(o, e), b]
@@ -304,7 +323,7 @@ class CompletePosterior:
         # contract m first (batched over e), then (o, e) in one product: O(q dim) memory (class docstring)
         half = torch.einsum("jlmoe,mae->jlaoe", coef.reshape(3, 3, 3, 3, dim), self._v3)  # (3, 3, q, 3, dim)
         diag_part = (half.reshape(9, q, 3 * dim) @ self._v_rows).reshape(9, q * q)
-        return _as_matrix(diag_part + _rotated_block_sum(delta, self._blocks), q) / n
+        return (_as_matrix(diag_part, q) + _rotated_block_sum(delta, self._blocks, q)) / n
 
 
 def _check_factorisation(info: torch.Tensor) -> None:
