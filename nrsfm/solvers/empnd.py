@@ -76,8 +76,9 @@ Cost: with missing points ``O(F (3P)^3)`` per iteration (one Cholesky
 factorisation and inverse per frame, :class:`DensePosterior`); with complete
 tracks ``O(F P^3)`` (:class:`CompletePosterior`). All of it is batched tensor
 algebra in float64, on a GPU when torch sees one (``device``). Drink (1102 x
-41, 132 iterations, the start included): 26.6 s on two cores, 47.2 s on one
-(session 13). A drink-sized synthetic sequence's EM: 24.5 s on two cores,
+41, 132 iterations, the start included): 25.3 s on two cores, 41.5 s on one
+(session 33; with 20% missing, 157 iterations: 77 s on two cores, 17 s of it
+the CSF2 start). A drink-sized synthetic sequence's EM: 24.5 s on two cores,
 1.9 s on an H100 (``benchmarks.speed_empnd``; ``benchmarks/RESULTS.md``).
 """
 
