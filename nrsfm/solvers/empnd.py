@@ -197,6 +197,8 @@ def _pair_weights(a: torch.Tensor) -> torch.Tensor:
 
 # the 3x3 blocks (m, o), m <= o, of a symmetric (3q, 3q) matrix: all that the rotated sums below need of it
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_UPPER_COLS = [3 * m + o for m, o in _UPPER]  # their columns (m, o) in _pair_weights
+_UPPER_HALF = [0.5 if m == o else 1.0 for m, o in _UPPER]  # the diagonal blocks count once in C_jl + C_lj^T
 
 
 def _upper_blocks(mats: torch.Tensor, q: int) -> torch.Tensor:
@@ -217,9 +219,7 @@ def _rotated_block_sum(rot: torch.Tensor, blocks: torch.Tensor, q: int) -> torch
     """``sum_f (rot_f kron I_q) B_f (rot_f kron I_q)^T`` `(3q, 3q)` for `(F, 3, 3)` ``rot`` and symmetric ``B_f``
     given by :func:`_upper_blocks`. Block (j, l) of the sum is ``C_jl + C_lj^T`` with ``C_jl = sum_{m<o}
     rot_jm rot_lo B_mo + 1/2 sum_m rot_jm rot_lm B_mm``: one `(9, 6F) x (6F, q^2)` product."""
-    cols = [3 * m + o for m, o in _UPPER]
-    half = torch.tensor([0.5 if m == o else 1.0 for m, o in _UPPER], dtype=rot.dtype, device=rot.device)
-    weights = _pair_weights(rot)[:, :, cols] * half  # (F, 9 [j, l], 6 [m <= o])
+    weights = _pair_weights(rot)[:, :, _UPPER_COLS] * rot.new_tensor(_UPPER_HALF)  # (F, 9 [j, l], 6 [m <= o])
     c = _as_matrix(weights.permute(1, 0, 2).reshape(9, -1) @ blocks, q)
     return c + c.T
 
