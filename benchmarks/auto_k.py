@@ -115,7 +115,8 @@ def rank_info(job: str, missing: float = 0.0) -> dict:
 
 
 def run_one(job: str, k: int, missing: float = 0.0) -> dict:
-    """CSF2 with K = ``k`` on one sequence: its camera-frame e3D and time (errors recorded, never raised)."""
+    """CSF2 with K = ``k`` on one sequence: its camera-frame e3D, time and shape start (errors recorded, never
+    raised)."""
     import nrsfm
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d
@@ -127,7 +128,7 @@ def run_one(job: str, k: int, missing: float = 0.0) -> dict:
     except NRSfMError as exc:
         return {"sequence": seq.name, "K": k, "status": "error", "why": str(exc)}
     return {"sequence": seq.name, "K": k, "status": "ok", "e3d": e3d(rec.points_3d, seq.points_3d),
-            "seconds": time.perf_counter() - t}
+            "seconds": time.perf_counter() - t, "shape_start": rec.info["shape_start"]}
 
 
 def _at(errors: dict[int, float], k: int) -> str:
