@@ -572,7 +572,7 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
         with threadpool_limits(limits=1, user_api="blas"):
             x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
             scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
-            n_probe = min((n for n in (params.round_iter, params.round_iter_alt) if n > 0), default=1)  # X/S a round
+            n_probe = min(n for n in (params.round_iter, params.round_iter_alt) if n > 0)  # X/S iterations a round
 
             def probe(xb: tuple[np.ndarray, np.ndarray, float]) -> float:  # visible RMSE after a few rounds
                 if not params.camera_rounds:
@@ -585,13 +585,13 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
             # the fit to the imputed entries does not rank the deterministic starts (module docstring): the other
             # one is refined on the visible entries too and, where it ends elsewhere, both go a few camera rounds;
             # it is taken when it then fits the visible entries more than start_margin better
-            chosen = shape_start
-            for name, fit in deterministic.items():
-                if name != chosen and not chosen.startswith("random"):
-                    alt = _refine_masked(w - t, mask, rows, omega, fit[0], params.refine_iter, params.ridge)
-                    if abs(alt[2] - rmse) > 1e-4 * rmse and probe(alt) < (1 - params.start_margin) * probe(
-                            (x, basis, rmse)):
-                        (x, basis, rmse), (it, converged), shape_start = alt, fit[2:4], f"{name} (visible entries)"
+            other = {"identity": "residual", "residual": "identity"}.get(shape_start)  # none after a random start
+            if other in deterministic:
+                fit = deterministic[other]
+                alt = _refine_masked(w - t, mask, rows, omega, fit[0], params.refine_iter, params.ridge)
+                if abs(alt[2] - rmse) > 1e-4 * rmse and probe(alt) < (1 - params.start_margin) * probe(
+                        (x, basis, rmse)):
+                    (x, basis, rmse), (it, converged), shape_start = alt, fit[2:4], f"{other} (visible entries)"
             if params.camera_rounds:
                 # alternate: cameras and translations on the visible entries, then X and S again (the camera
                 # upgrade above saw the imputed entries, whose errors it inherits); from the same start with
