@@ -572,11 +572,11 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
         with threadpool_limits(limits=1, user_api="blas"):
             x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
             scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
-            n_probe = min(n for n in (params.round_iter, params.round_iter_alt) if n > 0)  # X/S iterations a round
 
             def probe(xb: tuple[np.ndarray, np.ndarray, float]) -> float:  # visible RMSE after a few rounds
                 if not params.camera_rounds:
                     return xb[2]
+                n_probe = min(n for n in (params.round_iter, params.round_iter_alt) if n > 0)  # X/S its a round
                 with progress.listen(None):
                     return _occlusion_rounds(w, mask, omega, rot, t.reshape(n_frames, 2), xb[0], xb[1] * scale,
                                              min(_START_PROBE_ROUNDS, params.camera_rounds), n_probe,
