@@ -43,6 +43,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from nrsfm.datasets.synthetic import drop_entries
+
 from benchmarks.common import (add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata,
                                write_csv, write_json)
 
@@ -73,26 +75,19 @@ SPM_REFERENCE = {"drink": (".0266", "object"), "pickup": (".1731", "object"), "y
 #: The camera error (:func:`nrsfm.metrics.rotation_error`, Akhter et al.'s metric) of the same SPM runs, from the
 #: header of the authors' example script (``Rotation_Err``), for the files with ground-truth cameras.
 SPM_ROTATION_REFERENCE = {"drink": ".0071", "pickup": ".1210", "yoga": ".0883", "stretch": ".0676"}
-#: Per-sequence settings that reproduce the reference numbers (``--settings reference``, the default): CSF2's K
-#: (d = ceil(0.1 F), its default) as found by a K sweep against the reference cells (the authors' demos set K by
-#: hand; no rule picks these from W alone, see nrsfm/solvers/csf2.py). ``--settings auto`` runs every solver with
-#: its automatic defaults instead.
+#: Per-sequence settings that reproduce the reference numbers (``--settings reference``, the default), keyed by
+#: the benchmark's file names. They belong to this benchmark, never to a solver's defaults (which do not look at
+#: names). CSF2: K from a K sweep against the reference cells (d = ceil(0.1 F), its default; the authors set K by
+#: hand). SPM: the authors' K per sequence (Dai et al.'s example scripts). ``--settings auto`` runs every solver
+#: with its automatic defaults instead.
 REFERENCE_SETTINGS = {
     "csf2": {"drink": {"K": 10}, "pickup": {"K": 10}, "yoga": {"K": 8}, "stretch": {"K": 8}, "dance": {"K": 2},
              "jaws_rearranged": {"K": 3}},
+    "spm": {"drink": {"K": 12}, "pickup": {"K": 12}, "yoga": {"K": 10}, "stretch": {"K": 11}, "dance": {"K": 10},
+            "face": {"K": 7}, "walking": {"K": 8}, "jaws_rearranged": {"K": 4}},
 }
 #: Which reference row a registered solver is compared with.
 SOLVER_REFERENCE = {"csf2": "CSF2", "empnd": "EM-PND2", "spm": "SPM", "pta": "PTA", "ksta": "KSTA"}
-
-
-def drop_entries(seq, fraction: float):
-    """Mark ``fraction`` of the entries missing, seeded by the sequence name (independent of the worker)."""
-    if fraction <= 0:
-        return seq
-    rng = np.random.default_rng(zlib.crc32(f"missing-{seq.name}-{fraction}".encode()))
-    vis = seq.weights.copy()
-    vis[rng.random(vis.shape) < fraction] = 0.0
-    return seq.replace(visibility=vis)
 
 
 def long_sequence(n_frames: int, noise: float = 0.0):
@@ -382,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def plot_results(rows: list[dict], path: Path) -> None:
     """Grouped bars per sequence (rows with ``sequence``, ``method``, ``status``, ``e3d_camera``, ``seconds``;
-    ``benchmarks.pr_sweep`` passes its configurations as methods): each solver's camera-frame e3D (log scale;
+    ``benchmarks.studies.pr_sweep`` passes its configurations as methods): each solver's camera-frame e3D (log scale;
     the best published e3D of :data:`REFERENCE` as a black tick) and its time. Solvers that did not run leave
     a gap."""
     from nrsfm.plotting import _pyplot, _save

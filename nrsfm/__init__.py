@@ -10,9 +10,10 @@ Quick use::
 
 from nrsfm import metrics
 from nrsfm.errors import DataFormatError, NRSfMError, SolverError, ValidationError
-from nrsfm.io import load_sequence
+from nrsfm.datasets.files import load_sequence
+from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
-from nrsfm.solvers import Reconstruction, available_solvers, get_solver, solve
+from nrsfm.solvers import available_solvers, get_solver, solve
 
 __version__ = "0.1.0"
 __all__ = ["Sequence", "Reconstruction", "load_sequence", "solve", "get_solver", "available_solvers", "metrics",

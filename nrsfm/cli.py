@@ -122,7 +122,7 @@ def _is_reconstruction(path: str) -> bool:
 
 
 def _reconstruction_info(args: argparse.Namespace) -> int:
-    from nrsfm.solvers import Reconstruction
+    from nrsfm.reconstruction import Reconstruction
 
     rec = Reconstruction.load(args.file)
     n_frames, n_points, _ = rec.points_3d.shape
@@ -144,7 +144,7 @@ def _reconstruction_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from nrsfm.io import load_sequence
+    from nrsfm.datasets import load_sequence
 
     if _is_reconstruction(args.file):
         return _reconstruction_info(args)
@@ -171,7 +171,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_convert(args: argparse.Namespace) -> int:
-    from nrsfm.io import load_sequence
+    from nrsfm.datasets import load_sequence
 
     out = Path(args.output)
     if out.suffix != ".npz":
@@ -197,7 +197,7 @@ def _check_outputs(paths: list[str | None], force: bool, inputs: tuple[str, ...]
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
-    from nrsfm.io import load_sequence
+    from nrsfm.datasets import load_sequence
     from nrsfm.metrics import classic_metrics
     from nrsfm.solvers import get_solver, params_from_strings
 

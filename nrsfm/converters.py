@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from nrsfm.errors import ValidationError, shape_error
-from nrsfm.geometry import complete_rotation, nearest_orthonormal_rows
+from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.sequence import Sequence, as_float_array
 
 
@@ -92,7 +92,7 @@ def _fit_camera_rows(points_2d: np.ndarray, world: np.ndarray) -> np.ndarray:
     gram = np.einsum("fpi,fpj->fij", sc, sc)  # (F, 3, 3)
     cross = np.einsum("fpi,fpj->fij", wc, sc)  # (F, 2, 3)
     m = np.linalg.solve(gram, cross.transpose(0, 2, 1)).transpose(0, 2, 1)
-    return nearest_orthonormal_rows(m)
+    return nearest_rotation(m, allow_reflection=True)
 
 
 def from_pnd(x: np.ndarray, *, name: str = "sequence", **kwargs) -> Sequence:

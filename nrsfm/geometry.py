@@ -20,31 +20,41 @@ def complete_rotation(rows: np.ndarray) -> np.ndarray:
         the nearest pair of orthonormal rows and whose third row is their
         cross product (so det = +1).
     """
-    rows = nearest_orthonormal_rows(rows)
+    rows = nearest_rotation(rows, allow_reflection=True)
     third = np.cross(rows[:, 0], rows[:, 1])
     return np.concatenate([rows, third[:, None, :]], axis=1)
 
 
-def nearest_orthonormal_rows(m: np.ndarray) -> np.ndarray:
-    """Project `(..., 2, 3)` matrices to the nearest matrices with orthonormal rows."""
-    u, _, vt = np.linalg.svd(m, full_matrices=False)
-    return u @ vt
+def nearest_rotation(m, allow_reflection: bool = False):
+    """The orthogonal polar factor ``U V^T`` of ``m = U S V^T``: the nearest matrices with orthonormal rows.
 
+    The one polar decomposition of the package (cameras, Procrustes alignment, metrics); it takes numpy arrays
+    and torch tensors (autograd passes through) alike.
 
-def nearest_rotation(m: np.ndarray, allow_reflection: bool = False) -> np.ndarray:
-    """Project `(..., 3, 3)` matrices to the nearest orthogonal matrices.
-
-    With ``allow_reflection=False`` the result has det = +1.
+    Args:
+        m: `(..., n, 3)` matrices, n <= 3 (`(..., 2, 3)`: orthographic camera rows).
+        allow_reflection: when False (square ``m`` only) the sign of the last singular direction is chosen so that
+            det = +1: the nearest proper rotation.
     """
-    u, _, vt = np.linalg.svd(m)
-    r = u @ vt
-    if not allow_reflection:
-        d = np.sign(np.linalg.det(r))
-        d[d == 0] = 1.0
-        u = u.copy()
-        u[..., :, -1] *= d[..., None]
+    if type(m).__module__.partition(".")[0] == "torch":
+        import torch
+
+        u, _, vt = torch.linalg.svd(m, full_matrices=False)
         r = u @ vt
-    return r
+        if allow_reflection:
+            return r
+        d = torch.sign(torch.linalg.det(r))
+        d = torch.where(d == 0, torch.ones_like(d), d)
+        return torch.cat([u[..., :-1], u[..., -1:] * d[..., None, None]], dim=-1) @ vt
+    u, _, vt = np.linalg.svd(m, full_matrices=False)
+    r = u @ vt
+    if allow_reflection:
+        return r
+    d = np.sign(np.linalg.det(r))
+    d = np.where(d == 0, 1.0, d)
+    u = u.copy()
+    u[..., :, -1] *= d[..., None]
+    return u @ vt
 
 
 def centre(points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

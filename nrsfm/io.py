@@ -1,12 +1,15 @@
-"""File helpers: atomic writes and reading any supported sequence file."""
+"""File helpers: atomic writes and `.npz` reading that never unpickles."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
+
+import numpy as np
 
 from nrsfm.errors import DataFormatError
 
@@ -44,10 +47,6 @@ def is_reconstruction(names) -> bool:
 def read_npz(path: str | os.PathLike, what: str) -> dict:
     """Every array of an `.npz` file as a dict, never unpickling; a :class:`DataFormatError` naming ``what``
     the file was expected to be when it is missing, not a zip of arrays, damaged or holds pickled objects."""
-    import zipfile
-
-    import numpy as np
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file")
@@ -61,28 +60,3 @@ def read_npz(path: str | os.PathLike, what: str) -> dict:
                               f"arrays ({exc})") from None
     except Exception as exc:  # zipfile.BadZipFile, OSError, ...
         raise DataFormatError(f"{path}: expected {what}, could not read it ({exc})") from None
-
-
-def load_sequence(path: str | os.PathLike):
-    """Read a :class:`~nrsfm.sequence.Sequence` from `.npz` or a CMU `.mat` file.
-
-    `.npz` files must be nrsfm sequences (see :meth:`Sequence.save`); `.mat`
-    files may be in the Akhter layout (``W``, ``S``, ``Rs``) or the PND layout
-    (``X`` of shape 3 x P x F).
-    """
-    from nrsfm.sequence import Sequence
-
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file")
-    if path.is_dir():
-        raise DataFormatError(f"{path}: expected a file, got a directory")
-    suffix = path.suffix.lower()
-    if suffix == ".npz":
-        return Sequence.load(path)
-    if suffix == ".mat":
-        from nrsfm.datasets.cmu import load_cmu_mat
-
-        return load_cmu_mat(path)
-    raise DataFormatError(f"{path}: expected a .npz sequence or a CMU NRSfM .mat file, got a '{suffix or 'no'}' "
-                          "extension")

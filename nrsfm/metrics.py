@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from nrsfm.errors import ValidationError, shape_error
+from nrsfm.geometry import nearest_rotation
 
 Frame = Literal["camera", "object"]
 
@@ -71,11 +72,7 @@ def e3d_per_frame(pred: np.ndarray, gt: np.ndarray, *, frame: Frame = "camera",
     b = gt.reshape(-1, 3)
     # one global 3x3 least-squares fit b ~ a Q^T, projected to the nearest orthogonal matrix
     q_ls = np.linalg.lstsq(a, b, rcond=None)[0].T  # (3, 3)
-    u, _, vt = np.linalg.svd(q_ls)
-    q = u @ vt
-    if not allow_reflection and np.linalg.det(q) < 0:
-        u[:, -1] *= -1
-        q = u @ vt
+    q = nearest_rotation(q_ls, allow_reflection=allow_reflection)
     aligned = pred @ q.T
     # scale: mean over the 3F rows of the ground truth (3F x P) of each row's std over points
     scale = gt.std(axis=1).mean()
@@ -132,8 +129,7 @@ def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarra
     if gt.shape != pred.shape:
         raise shape_error("gt_rotations", f"(F, 3, 3) with F = {pred.shape[0]} like pred_rotations", gt.shape)
     a, b = pred[:, :2].reshape(-1, 3), gt[:, :2].reshape(-1, 3)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    return np.linalg.norm((a @ (u @ vt) - b).reshape(-1, 2, 3), ord=2, axis=(1, 2))
+    return np.linalg.norm((a @ nearest_rotation(a.T @ b, allow_reflection=True) - b).reshape(-1, 2, 3), ord=2, axis=(1, 2))
 
 
 def camera_moves(rotations: np.ndarray, tol: float = 1e-9) -> bool:
@@ -208,17 +204,9 @@ def pa_mpjpe_per_frame(pred: np.ndarray, gt: np.ndarray, *, allow_reflection: bo
     pred, gt = _check_pair(pred, gt)
     pred, gt = _centre(pred), _centre(gt)
     h = np.einsum("fpi,fpj->fij", pred, gt)  # (F, 3, 3)
-    u, s, vt = np.linalg.svd(h)
-    if not allow_reflection:
-        d = np.sign(np.linalg.det(u @ vt))
-        d[d == 0] = 1.0
-        vt = vt.copy()
-        vt[:, -1] *= d[:, None]
-        s = s.copy()
-        s[:, -1] *= d
-    rot = u @ vt  # pred @ rot ~ gt
+    rot = nearest_rotation(h, allow_reflection=allow_reflection)  # pred @ rot ~ gt
     norm = (pred**2).sum(axis=(1, 2))
-    scale = s.sum(axis=1) / np.where(norm > 0, norm, 1.0)
+    scale = np.einsum("fij,fij->f", rot, h) / np.where(norm > 0, norm, 1.0)  # tr(R^T H): the signed singular values
     aligned = scale[:, None, None] * pred @ rot
     return np.linalg.norm(aligned - gt, axis=2).mean(axis=1)
 

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from nrsfm.errors import ValidationError, shape_error
+from nrsfm.geometry import nearest_rotation
+from nrsfm.io import atomic_write
 from nrsfm.sequence import Sequence
 
 
@@ -29,8 +31,7 @@ def _align_for_display(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     a = (pred - pred.mean(axis=1, keepdims=True)).reshape(-1, 3)
     b = (gt - gt.mean(axis=1, keepdims=True)).reshape(-1, 3)
     q_ls = np.linalg.lstsq(a, b, rcond=None)[0].T
-    u, _, vt = np.linalg.svd(q_ls)
-    return (pred - pred.mean(axis=1, keepdims=True)) @ (u @ vt).T
+    return (pred - pred.mean(axis=1, keepdims=True)) @ nearest_rotation(q_ls, allow_reflection=True).T
 
 
 def _draw(ax, pts: np.ndarray, edges, *, three_d: bool, colour: str, vis: np.ndarray | None = None) -> None:
@@ -127,8 +128,6 @@ def plot_error_curve(curves: dict[str, np.ndarray], path: str | os.PathLike, *, 
 
 def _save(fig, path: str | os.PathLike, overwrite: bool) -> Path:
     """Write ``fig`` as PNG atomically (never replacing a file unless ``overwrite``) and close it."""
-    from nrsfm.io import atomic_write
-
     plt = _pyplot()
     fig.tight_layout()
     path = Path(path)

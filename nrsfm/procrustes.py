@@ -34,6 +34,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from nrsfm.geometry import nearest_rotation
+
 
 _EPS_CACHE: dict = {}
 
@@ -92,13 +94,7 @@ class Alignment:
 
 def proper_procrustes(target, source):
     """Rotations `(..., 3, 3)` with det +1 maximising ``tr(R source target^T)``."""
-    torch = _torch()
-    h = target @ source.transpose(-1, -2)  # (..., 3, 3)
-    u, _, vt = torch.linalg.svd(h)
-    d = torch.sign(torch.linalg.det(u @ vt))
-    d = torch.where(d == 0, torch.ones_like(d), d)
-    u = torch.cat([u[..., :2], u[..., 2:] * d[..., None, None]], dim=-1)
-    return u @ vt
+    return nearest_rotation(target @ source.transpose(-1, -2))  # (..., 3, 3)
 
 
 def rotation_exp(w):

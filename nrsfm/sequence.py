@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from nrsfm.errors import DataFormatError, ValidationError, shape_error
+from nrsfm.io import atomic_write, is_reconstruction, read_npz
 
 PROJECTIONS = ("orthographic", "perspective")
 FORMAT_VERSION = 1
@@ -331,8 +332,6 @@ class Sequence:
         if self.meta:
             arrays["meta_keys"] = np.array(list(self.meta.keys()), dtype=str)
             arrays["meta_values"] = np.array(list(self.meta.values()), dtype=str)
-        from nrsfm.io import atomic_write
-
         with atomic_write(path, overwrite=overwrite) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **arrays)
@@ -341,8 +340,6 @@ class Sequence:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Sequence":
         """Read a sequence written by :meth:`save` (never unpickles)."""
-        from nrsfm.io import is_reconstruction, read_npz
-
         path = Path(path)
         arrays = read_npz(path, "an nrsfm sequence .npz")
         if "points_2d" not in arrays:

@@ -103,7 +103,7 @@ def _atomic_save(obj: dict, path: Path) -> None:
 @dataclass
 class TrainResult:
     """A trained model, its history (loss every ``log_every`` iterations) and timings
-    (``benchmarks.speed_prn`` measures the loss's own share of an iteration)."""
+    (``benchmarks.studies.speed_prn`` measures the loss's own share of an iteration)."""
 
     model: PRNFCN
     config: TrainConfig

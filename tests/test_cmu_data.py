@@ -6,7 +6,7 @@ import pytest
 from nrsfm.cli import main
 from nrsfm.datasets import list_cmu_sequences, load_cmu_mat
 from nrsfm.errors import DataFormatError
-from nrsfm.io import load_sequence
+from nrsfm.datasets import load_sequence
 
 pytestmark = pytest.mark.realdata
 

@@ -417,3 +417,14 @@ def surface_sequence(n_frames: int = 120, n_u: int = 60, n_v: int = 50, *, noise
     p2 = cam[..., :2] + noise * rng.standard_normal(cam[..., :2].shape)
     return Sequence(points_2d=p2, points_3d=cam, camera_rotations=rot, name=name, fps=10.0,
                     meta={"dataset": "synthetic-surface"})
+
+
+def drop_entries(seq: Sequence, fraction: float) -> Sequence:
+    """``seq`` with about ``fraction`` of its `(F, P)` entries marked missing (visibility 0), uniformly at random,
+    seeded by the sequence name and the fraction (the same entries in every process and run)."""
+    if fraction <= 0:
+        return seq
+    rng = np.random.default_rng(zlib.crc32(f"missing-{seq.name}-{fraction}".encode()))
+    vis = seq.weights.copy()
+    vis[rng.random(vis.shape) < fraction] = 0.0
+    return seq.replace(visibility=vis)

@@ -14,7 +14,7 @@ reflection applied as ``D R D``, ``D = diag(1, 1, -1)``), projected onto SO(3).
 
 The weight is a setting, not something learnt from the sequence: no ground
 truth and nothing else of the sequence chooses it. 0.85 is the leave-one-
-sequence-out choice on the six CMU files of ``benchmarks.consensus_weight``:
+sequence-out choice on the six CMU files of ``benchmarks.studies.consensus_weight``:
 the weight that minimises the geometric mean of e3D(consensus) / e3D(EM-PND)
 over the other five files is 0.85 for four of them and the
 whole-set choice (drink: 0.65, the shark: 0.9). Measured numbers and the
@@ -28,8 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from nrsfm.errors import NRSfMError, ValidationError
+from nrsfm.geometry import nearest_rotation
+from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, get_solver, register
+from nrsfm.solvers.registry import get_solver, register
+from nrsfm.solvers.starts import shared_starts
 
 _FLIP = np.array([1.0, 1.0, -1.0])
 
@@ -98,9 +101,7 @@ def average_reconstructions(recs: list[Reconstruction], weights) -> tuple[np.nda
             rot_sum += w * np.where(flip[:, None, None], r * _FLIP[:, None] * _FLIP[None, :], r)  # D R D
     rotations = None
     if rot_sum is not None:
-        u, _, vt = np.linalg.svd(rot_sum)
-        u[:, :, -1] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]  # a proper rotation
-        rotations = u @ vt
+        rotations = nearest_rotation(rot_sum)
     return shapes, rotations, flipped
 
 
@@ -110,7 +111,6 @@ def solve_consensus(seq: Sequence, params: ConsensusParams) -> Reconstruction:
     """Every method of ``params`` on ``seq`` with its defaults, then :func:`average_reconstructions`. Missing points
     are allowed when every method handles them; a method that refuses the sequence stops the consensus with
     its own message."""
-    from nrsfm.solvers.csf2 import shared_starts
 
     names, weights = params.parsed()
     recs = []

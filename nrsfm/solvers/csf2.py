@@ -1,167 +1,70 @@
 """CSF2: column space fitting with complementary rank-3 spaces (Gotardo & Martinez, CVPR 2011).
 
-Model (orthographic, centred tracks): ``W = D (C kron I3) S`` with ``D`` `(2F, 3F)`
-the block-diagonal camera rows, ``C = Omega_d X`` `(F, K)` shape coefficients on
-the first ``d`` DCT vectors (smooth trajectories), and ``S`` `(3K, P)` the basis
-shapes. We follow the authors' MATLAB code (``pgComputeD.m``,
-``pgCSF_Bnr_fullW.m``); the reference numbers in NOTES.md come from it.
+Model (orthographic, centred tracks): ``W = D (C kron I3) S`` with ``D`` `(2F, 3F)` the block-diagonal camera
+rows, ``C = Omega_d X`` `(F, K)` shape coefficients on the first ``d`` DCT vectors (smooth trajectories,
+:mod:`nrsfm.solvers.dct`) and ``S`` `(3K, P)` the basis shapes. We follow the authors' MATLAB code
+(``pgComputeD.m``, ``pgCSF_Bnr_fullW.m``).
 
-1. Cameras (:func:`camera_rows`, PTA's Euclidean upgrade as modified by the
-   authors): the factor ``M = U sqrt(Sigma)`` of the centred W keeps every
-   singular value above ``energy`` times the largest (a multiple of 3
-   columns); the `(n, 3)` corrective matrix ``Q`` minimises the orthonormality
-   residual ``sum_f (|r_f1|^2 - 1)^2 + (|r_f2|^2 - 1)^2 + (r_f1 . r_f2)^2`` of
-   ``M Q``, grown three columns at a time from ``[I3; 0]`` while the cost
-   falls. We minimise with BFGS and the analytic gradient (the authors call
-   MATLAB's quasi-Newton ``fminunc``); Levenberg-Marquardt stalls in a worse
-   minimum on yoga (cost 2e-4 against 9e-7, e3D .38 against .030).
-2. Shape (:func:`fit_shape_gn`): with D fixed, ``X`` `(d, K)` minimises the
-   column-space cost ``||W - M M^+ W||^2``, ``M = D (Omega X kron I3)`` (S
-   eliminated in closed form), by damped Gauss-Newton on the variable-projection
-   Jacobian: damping 1e-4, x10 on a failed step, /100 on a good one; X
-   re-orthonormalised (QR) after every step; start ``X = I``; stop when the RMSE
-   falls by less than ``tol`` (times the RMS of W) over two iterations or after
-   ``max_iter`` (100) iterations. From ``X = I`` Gauss-Newton can stop in a
-   poor minimum on short, nearly rigid sequences (synthetic 150-frame faces,
-   exact cameras: RMSE .074 and e3D 1.27 where the true X gives .048 and
-   .0018), so a second run starts from the rigid fit's residual
-   (:func:`residual_start`: the constant plus the residual's first K - 1
-   temporal principal components) and is kept when its RMSE is more than 1%
-   lower. On the six CMU files the authors' start is the lower or within
-   1e-4 of it, so their numbers are unchanged (``residual_start=False``: the
-   authors' start only). Both can still stop in a poor minimum: noise-free
-   smooth-camera tracks of K = 4 (smooth:4:1:0 of ``benchmarks.auto_k``, 300
-   x 41) end at RMSE .0110 and e3D .3367 from both, where 4 of 6 random
-   orthonormal starts reach .0019 and e3D .0029. So
-   ``random_starts`` (3) random starts (fixed seed) follow, and the best
-   replaces the fit above only when its RMSE is below ``random_accept``
-   (half) of it: a different basin, not a slightly better fit. On real
-   tracks a slightly better fit is not a better reconstruction (stretch, K =
-   8: a random start fits 3.2% better and gives e3D .0401 against .0392),
-   and on the CMU files no random start fits better than 0.968 times the
-   deterministic starts (complete tracks; 1.000 on the completed W with 20%
-   missing), so their numbers are unchanged. ``python -m benchmarks.auto_k``
-   (every K on 47 sequences, complete and with 20% missing): of 376 and 209
-   cells only that one moves. Cost, one thread: drink 5.1 -> 6.7 s (K = 10),
-   4.5 -> 5.5 s (the automatic K, 8).
+1. Cameras (:func:`~nrsfm.solvers.cameras.camera_rows`): the factor ``M = U sqrt(Sigma)`` of the centred W,
+   upgraded by a `(n, 3)` corrective matrix grown three columns at a time while the orthonormality residual falls.
+   The authors minimise with MATLAB's ``fminunc``; we use BFGS on the analytic gradient.
+2. Shape (:func:`fit_shape_gn`): with D fixed, ``X`` `(d, K)` minimises the column-space cost
+   ``||W - M M^+ W||^2``, ``M = D (Omega X kron I3)`` (S eliminated in closed form), by damped Gauss-Newton on the
+   variable-projection Jacobian (damping 1e-4, x10 on a failed step, /100 on a good one; X re-orthonormalised
+   after every step), from the authors' start ``X = I``.
 
-Missing points (the occlusion-aware variant): W is first completed
-(:func:`~nrsfm.solvers.base.complete_lowrank`, ``info["completion"]``). Where
-the visible entries are exactly low-rank (noise-free tracks: some rank r <= 3K
-fits them to 1e-6 of their RMS, :func:`~nrsfm.solvers.base.visible_rank`), the
-rank-r fill is the true W and CSF2 runs on it as on complete tracks (four
-150-frame synthetic faces with 20% missing: e3D .0007-.0071, the complete-track
-numbers; .0052-.3791 with the hard imputation). Otherwise W is completed by a
-rank-3K hard imputation; steps 1-2 run on it; then X and S are refined by
-alternating least squares over the visible entries only (each sub-problem is
-linear; a small ``ridge`` on S keeps the depth of the basis bounded; the
-X-step's normal matrix comes from 2d - 1 cosine sums, :func:`dct_weighted_gram`).
-The shape step's fit to the imputed W can fail to tell the two
-deterministic starts apart: on smooth:4:2:0.01 of ``benchmarks.auto_k`` with
-20% missing (K = 4) the residual start fits the imputed W only .7% better
-(RMSE .2460 against .2478, under ``start_margin``) and ends at e3D .0424,
-where the authors' start ends at .8445 (visible RMSE .0096 against .0143).
-So the other deterministic start is refined on the visible entries too;
-where it ends elsewhere (visible RMSE more than 1e-4 apart), both go
-``_START_PROBE_ROUNDS`` (5) camera rounds (below) and the other start is
-taken when its visible RMSE is then more than ``start_margin`` lower
-(``info["shape_start"]`` says "(visible entries)"; without camera rounds the
-refined RMSE decides). The refined RMSE alone would mislead: on a synthetic
-face (face:0.005, K = 5) it prefers the residual start, which after the
-rounds fits worse (.0218 against .0178) and gives e3D .0216 against .0035;
-after 5 rounds the authors' start is ahead. On the CMU files both starts
-refine to the same RMSE but on dance, where the probe keeps the authors'
-start: their numbers are unchanged.
-The cameras of the completed W inherit the completion's errors (pickup with
-20% missing: e3D .45 against .026 complete), so up to ``camera_rounds`` (200)
-rounds follow: every frame's rotation and translation by Gauss-Newton on its
-visible entries (:func:`_refine_cameras`), then ``round_iter`` X/S iterations;
-each run returns its round of lowest visible-entry RMSE (the ridge on S lets
-the RMSE rise again before the rounds stop).
-The rounds run twice from the same start (``round_iter`` 20 and
-``round_iter_alt`` 5), side by side on two threads, and the lower
-visible-entry RMSE wins: the two land in different minima, and the better fit
-is the better reconstruction on both sequences where they differ (drink: RMSE
-.001444 / e3D .0175 against .001457 / .1096; pickup: .001743 / .0324 against
-.001862 / .0617). The slower run (20 X/S iterations per round) stops early
-when, from round 30 on, its RMSE is more than 2% above the other run's at the
-same round (``race_margin``, ``race_from``; :class:`_RoundRace`): on drink it
-is 2.9% behind at round 30, 1.8% at 100 and .9% at 200, so it now stops at
-round 30 (drink with 20% missing: 97 s -> 47 s, the same result); nowhere
-else we measured does the slower run fall 2% behind. ``info["rounds"]``: the
-rounds each run took, keyed by its X/S iterations per round.
+Departures from the authors, each to escape a poor minimum of step 2 (``benchmarks/RESULTS.md``):
 
-Units: W is first divided by the power of two nearest the RMS of its centred
-visible entries (:func:`~nrsfm.solvers.base.power_of_two_unit`; exact in
-floating point) and the shapes are multiplied back at the end, so the camera
-step's BFGS tolerances and the shape step's damping mean the same in any units.
-Without it, a noise-free 60 x 20 sequence gave e3D .98 with an RMS of 1e5 and
-.38 at 1e-9, against .044 at 1 (and EM-PPCA, which starts from CSF2, .86 at
-1e5); the CMU files' shapes move by at most 3e-5 (relative), e3D by at most
-1e-6.
+* a second start from the rigid fit's residual (:func:`residual_start`), kept when its RMSE is more than
+  ``start_margin`` lower (``residual_start=False``: the authors' start only);
+* ``random_starts`` random orthonormal starts (fixed seed), kept only when one fits with less than
+  ``random_accept`` times the RMSE of the deterministic starts: a different basin, not a slightly better fit.
 
-Automatic K and d (``K=0``/``d=0``; the authors always set them by hand):
-K = ceil(r / 3), plus one when 3 does not divide r (a basis of deficient
-rank: the shark's rank-5 W needs K = 3, and K = 2 fails; the faces' rank 7
-needs 4), at most 8 and with 3K < min(2F, P) (at 3K = 2F the rank-3K
-factorisation is all of W and leaves the cameras free: three frames of a
-K = 2 sequence gave e3D 17.0 with K = 2, 2.8 with K = 1; EM-PPCA from that
-start 12.1 and 3.7). r is the numerical rank of the centred W when W is
-rank deficient (noise-free tracks). Noisy tracks have full numerical rank:
-r is then Gavish & Donoho's noise threshold
-(:func:`~nrsfm.solvers.base.noise_rank`) where the spectrum has a clear gap
-there; otherwise (real motion capture such as the CMU files: no gap) K is
-the cap, 8. ``python -m benchmarks.auto_k`` measures the rule against every
-K (CSF2, camera-frame e3D, 300 x 41 synthetic tracks; see
-``benchmarks/RESULTS.md``): with a smoothly turning camera and 1% noise the
-cap (the rule before session 26) gave .38-.81 and the threshold's K gives
-.009-.046; at 5% noise 7 of 9 sequences pass the gap test (.035-.49
-against .41-.72), the other 2 keep the cap; the noisy synthetic faces .0005-.0007
-against .12-.61. Noise-free, the earlier rule's extra basis shape on rank
-3K costs .0018-.4826 where K gives .0006-.0038, on all 9 smooth-camera
-sequences (session 31; until the random shape starts, K = 4 gave .3367 on
-one of them, smooth:4:1:0, against .0184 at 5). With random cameras and 1% noise the two are
-close (true K = 3: .0087 against the cap's .0092; K = 5: .0192 against
-.0122);
-with missing points r is the lowest rank whose fit to the visible entries
-(variable projection) leaves less than 1e-6 of their RMS (:func:`auto_k`: on
-the CMU files and the stand-ins, the complete tracks' K; the same fit serves
-the exact completion above, and runs up to rank min(3K, 18) when K is given;
-where no rank fits, the noise floor of a ladder of such fits
-(:func:`~nrsfm.solvers.base.noise_visible_rank`: noisy low-rank tracks with
-missing points, which kept the cap until session 27; real motion capture shows
-no floor and keeps it);
-d = ceil(0.1 F) (the authors' demos), at least K + 1. On the CMU files no rule
-we tried picks the best K from W alone (the 2D fit, a held-out-frame fit and singular-value
-energy all keep improving with K while the depth gets worse). The settings
-that reproduce the authors' numbers on the CMU files are K = 10 (drink,
-pickup), 8 (yoga, stretch), 3 (shark), 2 (dance), all with d = ceil(0.1 F);
-``benchmarks.classic`` passes them (see ``benchmarks/RESULTS.md``).
+Missing points (the occlusion-aware variant): W is completed first (:func:`~nrsfm.lowrank.complete_lowrank`,
+``info["completion"]``). Where the visible entries are exactly low-rank (noise-free tracks), that fill is the true
+W and CSF2 runs on it as on complete tracks. Otherwise W is completed by a rank-3K hard imputation, steps 1-2 run
+on it, and then
+
+* X and S are refined by alternating least squares on the visible entries only (:func:`_refine_masked`; a small
+  ``ridge`` on S; the X-step's normal matrix from ``2d - 1`` cosine sums);
+* the deterministic start not chosen is refined too; where the two end apart, each goes
+  :data:`_START_PROBE_ROUNDS` camera rounds and the one with the lower visible RMSE is kept;
+* up to ``camera_rounds`` rounds alternate every frame's rotation and translation by Gauss-Newton on its visible
+  entries (:func:`_refine_cameras`) with ``round_iter`` X/S iterations. The rounds run twice from the same start
+  (``round_iter`` and ``round_iter_alt`` X/S iterations per round) on two threads, and the lower visible RMSE
+  wins; the slower run stops when it falls ``race_margin`` behind (:class:`_RoundRace`, deterministic).
+
+Units: W is divided by the power of two nearest its RMS (:func:`~nrsfm.lowrank.power_of_two_unit`, exact in
+floating point) so that tolerances and damping mean the same in any units.
+
+Automatic K and d (``K = 0`` / ``d = 0``; the authors set both by hand): K from the rank of the tracks
+(:func:`~nrsfm.solvers.starts.auto_k`), d = ceil(0.1 F) as in the authors' demos, at least K + 1. On real motion
+capture the rank rule takes its cap; the settings that reproduce the authors' numbers on the CMU files are a
+named table in ``benchmarks/classic.py``.
 """
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import functools
-import hashlib
 import threading
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 from scipy.linalg import cho_factor, cho_solve
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from nrsfm import progress
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
+from nrsfm.lowrank import complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank
+from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import (Reconstruction, complete_lowrank, masked_lstsq, noise_rank, noise_visible_rank,
-                                power_of_two_unit, register, require_visible_points, visible_rank)
+from nrsfm.solvers.cameras import camera_rows
+from nrsfm.solvers.dct import dct_basis, dct_weighted_gram_blocks
+from nrsfm.solvers.registry import register, require_visible_points
+from nrsfm.solvers.starts import auto_k, auto_k_max_rank
 
 
 @dataclass(frozen=True)
@@ -221,208 +124,6 @@ class CSF2Params:
                                   f"random_starts={self.random_starts}, refine_iter="
                                   f"{self.refine_iter}, camera_rounds={self.camera_rounds}, max_iter={self.max_iter}, "
                                   f"round_iter={self.round_iter}, round_iter_alt={self.round_iter_alt}")
-
-
-def dct_basis(n_frames: int, d: int) -> np.ndarray:
-    """`(F, d)` orthonormal DCT-II basis (first column constant)."""
-    t = np.arange(n_frames)
-    k = np.arange(d)
-    basis = np.cos(np.pi * (2 * t[:, None] + 1) * k[None] / (2 * n_frames))
-    basis[:, 0] *= 1 / np.sqrt(2)
-    return basis * np.sqrt(2 / n_frames)
-
-
-@functools.lru_cache(maxsize=8)
-def _dct_cosines(n_frames: int, d: int) -> np.ndarray:
-    """`(2d - 1, F)` ``cos(pi m (2f + 1) / 2F)`` for m < 2d - 1 (read-only; cached: the missing-data rounds call
-    :func:`dct_weighted_gram` thousands of times on one sequence)."""
-    freq = np.arange(2 * d - 1)
-    cos = np.cos(np.pi * (2 * np.arange(n_frames)[None] + 1) * freq[:, None] / (2 * n_frames))
-    cos.flags.writeable = False
-    return cos
-
-
-def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
-    """``G[a, b] = sum_f omega_fa omega_fb weights_f`` `(d, d, ...)` for the DCT basis of :func:`dct_basis` and
-    `(F, ...)` weights, from ``2d - 1`` cosine sums (``cos x cos y = (cos(x + y) + cos(x - y)) / 2``): ``O(F d)``
-    products instead of ``O(F d^2)`` (on drink, K = 10: 24 Mflop against 2.7 Gflop)."""
-    sums, scale = _dct_cosine_sums(weights, d)
-    sums = sums.reshape((2 * d - 1,) + weights.shape[1:])
-    a = np.arange(d)
-    gram = 0.5 * (sums[a[:, None] + a[None]] + sums[np.abs(a[:, None] - a[None])])
-    return gram * (scale[:, None] * scale[None]).reshape((d, d) + (1,) * (weights.ndim - 1))
-
-
-def _dct_cosine_sums(weights: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``2d - 1`` cosine sums `(2d - 1, prod(weights.shape[1:]))` of `(F, ...)` weights and the `(d,)` scale of
-    the DCT basis vectors (:func:`dct_basis`)."""
-    n_frames = weights.shape[0]
-    scale = np.full(d, np.sqrt(2 / n_frames))
-    scale[0] = np.sqrt(1 / n_frames)
-    return _dct_cosines(n_frames, d) @ weights.reshape(n_frames, -1), scale
-
-
-def dct_weighted_gram_blocks(weights: np.ndarray, d: int) -> np.ndarray:
-    """:func:`dct_weighted_gram` of `(F, K, K)` weights laid out as the `(d K, d K)` matrix with entry
-    ``[(a, k), (b, l)]`` = ``G[a, b, k, l]``: the X-step's normal matrix. The ``a + b`` (Hankel) and ``|a - b|``
-    (Toeplitz) terms are strided views of the cosine sums, added straight into that layout (the same values to
-    the bit as :func:`dct_weighted_gram`; on drink, K = 10, one thread, back to back: 4.7-5.0 ms against
-    8.6-9.8 ms with an index gather)."""
-    k = weights.shape[1]
-    sums, scale = _dct_cosine_sums(weights, d)
-    sums = sums.reshape(2 * d - 1, k, k)
-    s0, s1, s2 = sums.strides
-    plus = as_strided(sums, shape=(d, k, d, k), strides=(s0, s1, s0, s2), writeable=False)  # [a, k, b, l]: a + b
-    # |a - b| as b - a + d - 1 in the mirrored sums (entry m = sums[|m - (d - 1)|]), read from their middle
-    mirrored = np.concatenate([sums[d - 1:0:-1], sums[:d]])[d - 1:]
-    minus = as_strided(mirrored, shape=(d, k, d, k), strides=(-s0, s1, s0, s2), writeable=False)
-    gram = np.add(plus, minus)
-    gram *= (0.5 * scale[:, None] * scale[None])[:, None, :, None]  # halving is exact: as (x * 0.5) * (s_a s_b)
-    return gram.reshape(d * k, d * k)
-
-
-def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
-           max_frames: int = 300, max_points: int = 60, fit: tuple[int, np.ndarray | None] | None = None) -> int:
-    """CSF2's automatic K for a `(2F, P)` W: ``ceil(r / 3)``, plus one when 3 does not divide ``r``, for a rank
-    ``r`` of the centred W, at most ``k_max`` and with 3K < min(2F, P) (module docstring).
-
-    ``r`` is the numerical rank (singular values above ``rel_tol`` times the largest) when W is rank deficient;
-    when it is not, the rank of noisy low-rank tracks (:func:`~nrsfm.solvers.base.noise_rank`), and the cap
-    where W does not look like one (real motion capture).
-
-    With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less
-    than ``rel_tol`` of their RMS (:func:`~nrsfm.solvers.base.visible_rank`, on at most ``max_frames`` frames and
-    ``max_points`` points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); where none
-    fits, the rank of noisy low-rank tracks (:func:`~nrsfm.solvers.base.noise_visible_rank`, seconds: 4.9 s on
-    drink and 9.2 s on dance with 20% missing for the whole rule, one core), and the cap where there is none.
-    """
-    cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
-    if mask is not None and not mask.all():
-        max_rank = auto_k_max_rank(w, k_max)
-        rank = (fit or visible_rank(w, mask, max_rank, rel_tol=rel_tol, max_frames=max_frames,
-                                    max_points=max_points))[0]
-        if not rank:
-            rank = _shared("noise_visible_rank", (w / power_of_two_unit(w, mask), mask, max_rank, max_frames,
-                                                  max_points),
-                           lambda: noise_visible_rank(w, mask, max_rank, max_frames=max_frames, max_points=max_points))
-    else:
-        s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
-        rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
-        if rank >= min(w.shape[0], w.shape[1] - 1):
-            rank = noise_rank(s, w.shape)
-    return k_for_rank(rank, cap)
-
-
-def k_for_rank(rank: int, cap: int) -> int:
-    """:func:`auto_k`'s K for a rank: ``ceil(rank / 3)``, plus one when 3 does not divide it, at most ``cap``;
-    ``cap`` for rank 0 (none found)."""
-    if not rank:
-        return cap
-    return max(1, min(cap, -(-rank // 3) + (rank % 3 != 0)))
-
-
-def auto_k_max_rank(w: np.ndarray, k_max: int = 8) -> int:
-    """The largest rank :func:`auto_k` tests on a `(2F, P)` W with missing entries: 3 (cap - 2)."""
-    return 3 * (max(1, min(k_max, min(w.shape) // 3)) - 2)
-
-
-def refine_triple(pi: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, float]:
-    """Minimise the scale-invariant orthonormality residual of ``pi @ G`` from ``g0``.
-
-    BFGS (analytic gradient) followed by a Levenberg-Marquardt polish, and LM
-    from ``g0`` alone; the lower cost wins. LM alone is fragile: on drink
-    (SPM, K = 12) it stalls at cost 4.0 (cameras 15 degrees off) or reaches
-    7e-4 (0.3 degrees) depending on the BLAS thread count; BFGS reaches 7e-4
-    either way.
-
-    Args:
-        pi: `(F, 2, 3K)` rank-3K factor; g0: `(3K, 3)` start.
-
-    Returns:
-        The refined `(3K, 3)` triple and the final cost (0 for exact data).
-    """
-    import scipy.optimize
-
-    r = pi.shape[2]
-    pa, pb = pi[:, 0], pi[:, 1]  # (F, r)
-
-    def residual(g_flat: np.ndarray) -> np.ndarray:
-        m = pi @ g_flat.reshape(r, 3)  # (F, 2, 3)
-        a, b = m[:, 0], m[:, 1]
-        na, nb = (a * a).sum(1), (b * b).sum(1)
-        den = na + nb + 1e-300
-        return np.concatenate([(na - nb) / den, 2 * (a * b).sum(1) / den])
-
-    def cost_grad(g_flat: np.ndarray) -> tuple[float, np.ndarray]:
-        a, b = pa @ g_flat.reshape(r, 3), pb @ g_flat.reshape(r, 3)  # (F, 3)
-        na, nb, ab = (a * a).sum(1), (b * b).sum(1), (a * b).sum(1)
-        den = na + nb + 1e-300
-        e, o = (na - nb) / den, 2 * ab / den
-        den2 = den**2
-        ca = 2 * (e * 2 * nb - o * 2 * ab) / den2  # d cost / d na, times 2 (d na / d a = 2 a)
-        cb = 2 * (-e * 2 * na - o * 2 * ab) / den2
-        co = 2 * o / den
-        grad = pa.T @ (ca[:, None] * a + co[:, None] * b) + pb.T @ (cb[:, None] * b + co[:, None] * a)
-        return 0.5 * float(e @ e + o @ o), grad.ravel()
-
-    # LM needs at least as many residuals (2F) as unknowns (3r); with fewer frames (three frames, K >= 1) the
-    # trust-region solver polishes instead
-    method = "lm" if 2 * pi.shape[0] >= 3 * r else "trf"
-
-    def polish(g_flat: np.ndarray) -> tuple[np.ndarray, float]:
-        res = scipy.optimize.least_squares(residual, g_flat, method=method, max_nfev=2000, xtol=1e-12, ftol=1e-12)
-        return res.x, float(res.cost)
-
-    bfgs = scipy.optimize.minimize(cost_grad, g0.ravel(), jac=True, method="BFGS",
-                                   options={"gtol": 1e-10, "maxiter": 5000})
-    candidates = [polish(bfgs.x), polish(g0.ravel())]
-    g, cost = min(candidates, key=lambda c: c[1])
-    return g.reshape(r, 3), cost
-
-
-def camera_rows(wc: np.ndarray, energy: float = 1e-4) -> tuple[np.ndarray, float, int]:
-    """Orthographic camera rows from the centred `(2F, P)` W (step 1 of the module docstring).
-
-    Returns:
-        `(F, 2, 3)` rows ``M Q`` (nearly orthonormal, not normalised: the shape
-        step uses them as they are, like the authors), the final orthonormality
-        cost (mean over the 2F rows; 0 for exact data) and the number of columns
-        of M used.
-    """
-    import scipy.optimize
-
-    n_frames = wc.shape[0] // 2
-    u, s, _ = np.linalg.svd(wc, full_matrices=False)
-    n_cols = 3 * int(np.ceil(np.count_nonzero(s / s[0] > energy) / 3))
-    if n_cols > u.shape[1]:
-        n_cols -= 3
-    m = (u[:, :n_cols] * np.sqrt(s[:n_cols])).reshape(n_frames, 2, n_cols)
-
-    def cost_grad(q_flat: np.ndarray, mm: np.ndarray) -> tuple[float, np.ndarray]:
-        rows = mm @ q_flat.reshape(-1, 3)  # (F, 2, 3)
-        a, b = rows[:, 0], rows[:, 1]
-        ea, eb, ab = (a * a).sum(1) - 1, (b * b).sum(1) - 1, (a * b).sum(1)  # (F,)
-        scale = 1.0 / n_frames  # the authors' 2 f / (2F)
-        # d/dQ of the three residuals: M_f1^T (2 a), M_f2^T (2 b), M_f1^T b + M_f2^T a
-        grad = mm[:, 0].T @ (4 * ea[:, None] * a + 2 * ab[:, None] * b) \
-            + mm[:, 1].T @ (4 * eb[:, None] * b + 2 * ab[:, None] * a)
-        return scale * float(ea @ ea + eb @ eb + ab @ ab), scale * grad.ravel()
-
-    def fit(q0: np.ndarray) -> tuple[np.ndarray, float]:
-        res = scipy.optimize.minimize(cost_grad, q0.ravel(), args=(m[:, :, :len(q0)],), jac=True, method="BFGS",
-                                      options={"gtol": 1e-12, "maxiter": 2000})
-        return res.x.reshape(-1, 3), float(res.fun)
-
-    if n_cols == 3:  # rigid (rank 3): the metric upgrade of the rigid factorisation
-        q, best = fit(np.eye(3))
-    else:
-        q, best = np.eye(3), np.inf
-        while q.shape[0] + 3 <= n_cols:  # grow [Q; 0] three columns at a time while the cost falls
-            new_q, cost = fit(np.vstack([q, np.zeros((3, 3))]))
-            if not cost < best:
-                break
-            q, best = new_q, cost
-    return m[:, :, :q.shape[0]] @ q, best, q.shape[0]
 
 
 def residual_start(wc: np.ndarray, rows: np.ndarray, omega: np.ndarray, k: int) -> np.ndarray:
@@ -626,70 +327,6 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
 _START_PROBE_ROUNDS = 5
 
 
-def fits_csf2(n_frames: int, n_points: int) -> bool:
-    """Whether CSF2 can run: it needs 3K <= min(2F, P) with K >= 2."""
-    return min(2 * n_frames, n_points) >= 6
-
-
-_SHARED_STARTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("csf2_shared_starts", default=None)
-
-
-@contextlib.contextmanager
-def shared_starts():
-    """Within this block, :func:`csf2_start` computes each start once and hands out copies.
-
-    Solvers that run other solvers (the consensus: EM-PND and PR) start both from the same CSF2 reconstruction
-    when points are missing (its occlusion-aware form, 50 camera rounds; 10 s of drink with 20% missing). A
-    start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the K it chose too,
-    where that K given would search the same ranks) and the other settings; the cache ends with the block.
-    So is the noise rank of :func:`auto_k` with missing points (most of its 4.9 s on drink with 20% missing),
-    which both solvers' automatic K compute.
-    """
-    token = _SHARED_STARTS.set({})
-    try:
-        yield
-    finally:
-        _SHARED_STARTS.reset(token)
-
-
-def _shared(name: str, key: tuple, compute: Callable[[], Any]) -> Any:
-    """``compute()``, or inside :func:`shared_starts` its value for the same ``name`` and ``key`` (arrays in it by
-    their bytes) when already computed there."""
-    cache = _SHARED_STARTS.get()
-    if cache is None:
-        return compute()
-    digest = hashlib.sha256(name.encode())
-    for part in key:
-        if isinstance(part, np.ndarray):
-            digest.update(f"{part.dtype}{part.shape}".encode())
-            digest.update(np.ascontiguousarray(part).tobytes())
-        else:
-            digest.update(repr(part).encode())
-    if digest.hexdigest() not in cache:
-        cache[digest.hexdigest()] = compute()
-    return cache[digest.hexdigest()]
-
-
-def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
-    """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
-    3K <= min(2F, P) (0: the automatic rule); ``overrides``: other :class:`CSF2Params` fields. Check
-    :func:`fits_csf2` first. Inside :func:`shared_starts`, computed once per input."""
-    k = min(K, min(2 * seq.n_frames, seq.n_points) // 3)
-    cache = _SHARED_STARTS.get()
-    if cache is None:
-        return solve_csf2.__wrapped__(seq, CSF2Params(K=k, **overrides)).points_3d
-    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
-    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
-    data = (digest.hexdigest(), seq.points_2d.shape, seq.projection, tuple(sorted(overrides.items())))
-    if (data, k) not in cache:
-        rec = solve_csf2.__wrapped__(seq, CSF2Params(K=k, **overrides))
-        cache[data, k] = rec.points_3d
-        if 3 * rec.info["K"] >= auto_k_max_rank(np.empty((2 * seq.n_frames, seq.n_points))):
-            # the automatic K searched the same ranks as this K given would: the same start
-            cache[data, rec.info["K"]] = rec.points_3d
-    return cache[data, k].copy()
-
-
 def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np.ndarray, x: np.ndarray,
                    n_iter: int, ridge: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Alternating least squares on the visible entries of `(2F, P)` wc (S-step, X-step; X re-orthonormalised).
@@ -810,8 +447,6 @@ def _refine_cameras(w: np.ndarray, mask: np.ndarray, rot: np.ndarray, shapes: np
     ``w`` `(2F, P)` raw tracks, ``mask`` `(2F, P)`, ``rot`` `(F, 3, 3)`, ``shapes`` `(F, 3, P)` object frame,
     ``t`` `(F, 2)`. Rotations are updated as ``R exp([omega]_x)``. Returns the new ``rot`` and ``t``.
     """
-    from scipy.spatial.transform import Rotation
-
     n_frames, n_points = shapes.shape[0], shapes.shape[2]
     wf = w.reshape(n_frames, 2, n_points)
     m = mask.reshape(n_frames, 2, n_points).astype(np.float64)

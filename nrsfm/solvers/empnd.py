@@ -79,7 +79,7 @@ algebra in float64, on a GPU when torch sees one (``device``). Drink (1102 x
 41, 132 iterations, the start included): 25.3 s on two cores, 41.5 s on one
 (session 33; with 20% missing, 157 iterations: 77 s on two cores, 17 s of it
 the CSF2 start). A drink-sized synthetic sequence's EM: 24.5 s on two cores,
-1.9 s on an H100 (``benchmarks.speed_empnd``; ``benchmarks/RESULTS.md``).
+1.9 s on an H100 (``benchmarks.studies.speed_empnd``; ``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
@@ -95,8 +95,11 @@ from nrsfm.errors import SolverError, ValidationError
 from nrsfm.procrustes import proper_procrustes, skew
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register, require_visible_points
-from nrsfm.solvers.csf2 import csf2_start, fits_csf2
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
+from nrsfm.solvers.rectify import factorisation_start
+from nrsfm.solvers.registry import register, require_visible_points, solve
+from nrsfm.solvers.starts import csf2_start, fits_csf2
 
 _DT = torch.float64
 
@@ -528,18 +531,12 @@ def _start_shapes(seq: Sequence, params: EMPNDParams, kind: str) -> np.ndarray:
         if not bool((seq.weights > 0).all()):
             raise ValidationError("empnd: init='factorisation' needs every point visible; this sequence has "
                                   f"{int((seq.weights <= 0).sum())} missing entries. Use init='auto' or 'csf2'.")
-        from nrsfm.solvers.rectify import factorisation_start
-
         return factorisation_start(seq.points_2d)
     if kind == "csf2":
         return csf2_start(seq, params.init_K, camera_rounds=params.init_rounds, round_iter=5, round_iter_alt=0)
     if kind in ("spm", "pr"):
-        from nrsfm.solvers import solve
-
         if kind == "spm" and not bool((seq.weights > 0).all()):
             raise ValidationError("empnd: init='spm' needs every point visible; this sequence has "
                                   f"{int((seq.weights <= 0).sum())} missing entries. Use init='auto', 'csf2' or 'pr'.")
         return solve(seq, kind).points_3d
-    from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
-
     return solve_rank3.__wrapped__(seq, Rank3Params()).points_3d

@@ -38,10 +38,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from nrsfm.errors import ValidationError
-from nrsfm.geometry import complete_rotation
+from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, impute_lowrank, register, require_visible_points
+from nrsfm.lowrank import impute_lowrank
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
+from nrsfm.solvers.registry import register, require_visible_points
+from nrsfm.solvers.starts import csf2_reconstruction
 
 
 #: K when not given: the Gaussian prior on the coefficients keeps unused modes small, so a generous K is
@@ -84,11 +88,6 @@ class EMPPCAParams:
                                   f"{self.K}, {self.max_iter}, {self.rotation_steps}")
 
 
-def _polar_rows(m: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(m, full_matrices=False)
-    return u @ vt
-
-
 def _procrustean_projection(modes: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """Remove from `(K, 3, P)` modes their components along rotations and translations of `(3, P)` ``mean``."""
     n_points = mean.shape[1]
@@ -109,8 +108,6 @@ def _procrustean_projection(modes: np.ndarray, mean: np.ndarray) -> np.ndarray:
           handles_missing=True)
 def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     """EM-PPCA on an orthographic sequence (missing points allowed). See the module docstring."""
-    from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
-
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = (seq.weights > 0).astype(np.float64)  # (F, P)
     require_visible_points(seq, "emppca")
@@ -127,10 +124,8 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     if init == "csf2" and min(2 * n_frames, n_points) < 6:
         init = "rigid"  # CSF2 needs 3K <= min(2F, P) with K >= 2; tiny sequences start rigid (documented fallback)
     if init == "csf2":  # cameras, mean and modes from CSF2's reconstruction (PCA of its object-frame shapes)
-        from nrsfm.solvers.csf2 import CSF2Params, solve_csf2
-
         k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's automatic K
-        start = solve_csf2.__wrapped__(seq, CSF2Params(K=k_init))
+        start = csf2_reconstruction(seq, k_init)
         r2 = start.rotations[:, :2].copy()
         obj = start.shapes_object.transpose(0, 2, 1)  # (F, 3, P)
         mean = obj.mean(axis=0)
@@ -194,7 +189,7 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
         b_mat = wt @ es.transpose(0, 2, 1)  # (F, 2, 3)
         lmax = np.linalg.eigvalsh(c_mat)[:, -1]  # (F,)
         for _ in range(params.rotation_steps):
-            r2 = _polar_rows(b_mat + r2 @ (lmax[:, None, None] * np.eye(3) - c_mat))
+            r2 = nearest_rotation(b_mat + r2 @ (lmax[:, None, None] * np.eye(3) - c_mat), allow_reflection=True)
         # ---- translations and noise
         proj = r2 @ es  # (F, 2, P)
         t = ((w_fip - proj) * vis_f1p).sum(axis=2) / vis.sum(axis=1)[:, None]

@@ -69,7 +69,11 @@ import numpy as np
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, complete_lowrank, register, require_visible_points, visible_rank
+from nrsfm.lowrank import complete_lowrank, visible_rank
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
+from nrsfm.solvers.registry import register, require_visible_points
+from nrsfm.solvers.starts import auto_k, auto_k_max_rank, csf2_start, fits_csf2
 
 log = logging.getLogger(__name__)
 
@@ -149,8 +153,6 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
     w = seq.measurement_matrix()  # (2F, P)
     completion = "none"
     if not visible.all():
-        from nrsfm.solvers.csf2 import auto_k, auto_k_max_rank
-
         mask = np.repeat(visible, 2, axis=0)
         max_rank = auto_k_max_rank(w)
         if params.impute_rank and params.init_K:
@@ -247,8 +249,6 @@ def _occlusion_aware_start(seq: Sequence, params: PRParams) -> np.ndarray | None
     """`(F, P, 3)` camera-frame shapes of CSF2's occlusion-aware form on ``seq`` (K: ``params.init_K``), cut
     to ``params.start_rounds`` camera rounds of 5 X/S iterations (EM-PND's start with missing points); None
     where it fails."""
-    from nrsfm.solvers.csf2 import csf2_start
-
     try:
         return csf2_start(seq, params.init_K, camera_rounds=params.start_rounds, round_iter=5, round_iter_alt=0)
     except SolverError as err:
@@ -269,9 +269,6 @@ def _fill_from_shapes(w: np.ndarray, mask: np.ndarray, shapes: np.ndarray) -> np
 def _start(p2: np.ndarray, params: PRParams) -> tuple[np.ndarray, str]:
     """`(F, P, 3)` starting shapes for the normalised, centred, completed tracks ``p2`` `(F, P, 2)`, and the
     start used (``"csf2"`` falls back to ``"rigid"`` where CSF2 cannot run)."""
-    from nrsfm.solvers.csf2 import csf2_start, fits_csf2
-    from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
-
     seq = Sequence(points_2d=p2)
     if params.init == "csf2" and fits_csf2(seq.n_frames, seq.n_points):
         try:

@@ -16,7 +16,8 @@ import numpy as np
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, register
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.solvers.registry import register
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ files (drink .0220 -> .0154, pickup .0488 -> .0300, the shark .2333 ->
 .1923; object frame: drink .0264 -> .0196, pickup .1692 -> .1725, yoga
 .1379 -> .1391). The objective is not convex, and its CMU results move by up
 to 2% with the BLAS thread count. See ``benchmarks/RESULTS.md`` and
-``python -m benchmarks.spm_shape``.
+``python -m benchmarks.studies.spm_shape``.
 
 K: the authors' per-sequence settings (drink 12, pickup 12, yoga 10, stretch
 11, dance 10, face 7, walking 8, shark 4) when the sequence name matches,
@@ -67,16 +67,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from nrsfm.errors import SolverError, ValidationError
-from nrsfm.geometry import complete_rotation
+from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.solvers.base import Reconstruction, power_of_two_unit, register
+from nrsfm.lowrank import power_of_two_unit
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.solvers.cameras import camera_rows, refine_triple
+from nrsfm.solvers.registry import register
 
 log = logging.getLogger(__name__)
-
-AUTHORS_K = {"drink": 12, "pickup": 12, "yoga": 10, "stretch": 11, "dance": 10, "face": 7, "walking": 8,
-             "shark": 4, "jaws": 4, "jaws_rearranged": 4}
-
 
 @dataclass(frozen=True)
 class SPMParams:
@@ -147,10 +146,9 @@ def auto_rank(w: np.ndarray, energy: float = 0.995, k_min: int = 2, k_max: int =
     return k_max
 
 
-def choose_k(name: str, wm: np.ndarray, k: int = 0) -> int:
-    """SPM's K for the sequence ``name`` with `(2F, P)` W: ``k`` when given, else the authors' setting for the
-    name, else :func:`auto_rank`; at most min(2F, P) // 3."""
-    k = k or AUTHORS_K.get(name.split("/")[-1].lower(), 0) or auto_rank(wm)
+def choose_k(wm: np.ndarray, k: int = 0) -> int:
+    """SPM's K for a `(2F, P)` W: ``k`` when given, else :func:`auto_rank`; at most min(2F, P) // 3."""
+    k = k or auto_rank(wm)
     return max(1, min(k, min(wm.shape) // 3))
 
 
@@ -205,11 +203,6 @@ def _solve(problem, variable, what: str) -> np.ndarray:
     raise SolverError(f"spm: the {what} program failed ({problem.status})")
 
 
-def _polar(m: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(m)
-    return u @ vt
-
-
 def resolve_signs(rot: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Flip frames by diag(-1, -1, 1) so that the camera rows agree with ``reference`` `(F, 3, 3)`.
 
@@ -223,12 +216,12 @@ def resolve_signs(rot: np.ndarray, reference: np.ndarray) -> np.ndarray:
     best_cost, best_signs = np.inf, np.ones(len(rot))
     for f0 in np.unique(np.linspace(0, len(rot) - 1, min(len(rot), 6)).astype(int)):
         for s0 in (1.0, -1.0):
-            h = _polar(s0 * r2[f0].T @ q2[f0])
+            h = nearest_rotation(s0 * r2[f0].T @ q2[f0], allow_reflection=True)
             for _ in range(6):
                 keep = np.linalg.norm(r2 @ h - q2, axis=(1, 2))
                 flip = np.linalg.norm(-(r2 @ h) - q2, axis=(1, 2))
                 signs = np.where(flip < keep, -1.0, 1.0)
-                h = _polar(np.einsum("f,fji,fjk->ik", signs, r2, q2))
+                h = nearest_rotation(np.einsum("f,fji,fjk->ik", signs, r2, q2), allow_reflection=True)
             cost = np.minimum(keep, flip).sum()
             if cost < best_cost:
                 best_cost, best_signs = cost, signs
@@ -270,7 +263,6 @@ def rotations_from_triple(pi: np.ndarray, g: np.ndarray, reference: np.ndarray) 
 
 def camera_step(wm: np.ndarray, k: int, trace_weight: float = 1e-4) -> Cameras:
     """Steps 1-4 of the module docstring for a centred `(2F, P)` W (rows 2f, 2f+1 of frame f) and K basis shapes."""
-    from nrsfm.solvers.csf2 import camera_rows, refine_triple
 
     n_frames = wm.shape[0] // 2
     u, s, _ = np.linalg.svd(wm, full_matrices=False)
@@ -294,7 +286,7 @@ def refine_cameras_nuclear(wf: np.ndarray, cameras: Cameras, depth: np.ndarray, 
     orthonormal rows to ``pi_f G``, third row by cross product; the residual is the camera step's. L-BFGS (torch,
     float64, CPU) for ``iters`` iterations. The camera step alone fits orthonormality only, and on yoga its
     minimum is 20% above the authors' object-frame e3D; this asks the nuclear norm too. Measured by
-    ``python -m benchmarks.spm_cameras`` (``benchmarks/RESULTS.md``): at weight 3 the camera-frame e3D falls on
+    ``python -m benchmarks.studies.spm_cameras`` (``benchmarks/RESULTS.md``): at weight 3 the camera-frame e3D falls on
     all six CMU files and the object-frame e3D on pickup, yoga and stretch, but drink's cameras move off (object
     frame .0264 -> .0500), so it is not the default.
 
@@ -516,7 +508,7 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     n_frames, n_points = seq.n_frames, seq.n_points
     w = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)
     wm = w.transpose(0, 2, 1).reshape(2 * n_frames, n_points)  # (2F, P)
-    k = choose_k(seq.name, wm, params.K)
+    k = choose_k(wm, params.K)
     cameras = camera_step(wm, k, params.trace_weight)
     rot, cam_residual = cameras.rotations, cameras.residual
     wf = w.transpose(0, 2, 1)  # (F, 2, P)

@@ -1,6 +1,6 @@
 """SPM's shape step: the authors' nuclear norm against the partial sum of singular values beyond K.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.spm_shape [--root DIR] [--jobs N] [--sequences a,b] [--smooth 300,1000]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.spm_shape [--root DIR] [--jobs N] [--sequences a,b] [--smooth 300,1000]
         [--out DIR] [--rerun] [--no-progress]
 
 SPM (:mod:`nrsfm.solvers.spm`) with ``shape_objective="nuclear"`` (its default, the authors' method) and
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
-log = logging.getLogger("benchmarks.spm_shape")
+log = logging.getLogger("benchmarks.studies.spm_shape")
 
 OBJECTIVES = ("nuclear", "partial")
 

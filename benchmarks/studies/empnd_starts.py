@@ -1,6 +1,6 @@
 """EM-PND from other solvers' reconstructions, and the mean of those runs: a study of EM-PND's start.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.empnd_starts [--root DIR] [--jobs N] [--sequences a,b]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.empnd_starts [--root DIR] [--jobs N] [--sequences a,b]
                                                         [--starts auto,spm,pr] [--out DIR] [--rerun] [--no-progress]
 
 Runs the ``empnd`` solver on every file under ``DIR/nrsfm`` once per start
@@ -30,7 +30,7 @@ import numpy as np
 from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
                                write_json, write_text_atomic)
 
-log = logging.getLogger("benchmarks.empnd_starts")
+log = logging.getLogger("benchmarks.studies.empnd_starts")
 
 
 def fit_to(x: np.ndarray, ref: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The weight of the ``consensus`` solver, chosen by leave-one-sequence-out on the CMU files.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.consensus_weight [--root DIR] [--jobs N] [--sequences a,b]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.consensus_weight [--root DIR] [--jobs N] [--sequences a,b]
         [--methods empnd,pr] [--grid 0.5:1:0.05] [--missing 0.2] [--out DIR] [--rerun] [--no-progress]
 
 Runs the two solvers of ``--methods`` once on every file under ``DIR/nrsfm``,
@@ -31,7 +31,7 @@ import numpy as np
 
 from benchmarks.common import code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
-log = logging.getLogger("benchmarks.consensus_weight")
+log = logging.getLogger("benchmarks.studies.consensus_weight")
 
 
 def parse_grid(text: str) -> list[float]:
@@ -54,7 +54,8 @@ def parse_grid(text: str) -> list[float]:
 def run_one(job: str, methods: tuple[str, str], grid: list[float], missing: float) -> dict:
     """Both solvers on one sequence and the e3D of every weighted mean; errors are recorded, never raised."""
     import nrsfm
-    from benchmarks.classic import drop_entries, load_benchmark_sequence
+    from benchmarks.classic import load_benchmark_sequence
+    from nrsfm.datasets.synthetic import drop_entries
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d
     from nrsfm.solvers.consensus import average_reconstructions

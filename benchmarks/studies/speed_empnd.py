@@ -1,11 +1,11 @@
 """EM-PND on the CPU and on a GPU: time, iterations and e3D of the same solve on each device.
 
-    python -m benchmarks.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--frames 1102] [--root DIR] [--out DIR]
+    python -m benchmarks.studies.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--frames 1102] [--root DIR] [--out DIR]
 
 Sequences: a drink-sized synthetic one (``--frames`` frames, 1102 by default,
 x 41 points, K = 5, random cameras, 0.5% 2D noise; always) and CMU drink when the data is found
 (``--root`` or ``$NRSFM_DATA``). Each is solved with every fraction of
-``--missing`` entries dropped (:func:`benchmarks.classic.drop_entries`) on
+``--missing`` entries dropped (:func:`nrsfm.datasets.synthetic.drop_entries`) on
 every device of ``--devices`` (default: the CPU, and CUDA when torch sees a
 GPU). The start (the authors' factorisation with complete tracks,
 CSF2-occlusion with missing points) runs on the CPU either way; the table
@@ -46,7 +46,7 @@ def sequences(root: str | None, n_frames: int = 1102) -> list:
 def measure(seq, missing: float, device: str) -> dict:
     """One EM-PND solve of ``seq`` with ``missing`` of its entries dropped, on ``device``: one result row."""
     import nrsfm
-    from benchmarks.classic import drop_entries
+    from nrsfm.datasets.synthetic import drop_entries
     from nrsfm.metrics import e3d
 
     rec = nrsfm.solve(drop_entries(seq, missing), "empnd", device=device)
@@ -60,7 +60,7 @@ def measure(seq, missing: float, device: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     from nrsfm.errors import NRSfMError
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.speed_empnd", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.speed_empnd", description=__doc__.split("\n\n")[0])
     p.add_argument("--devices", default="cpu,cuda" if torch.cuda.is_available() else "cpu",
                    help="comma-separated devices (default: cpu, and cuda when torch sees a GPU)")
     p.add_argument("--missing", default="0,0.2", help="comma-separated fractions of entries to drop")

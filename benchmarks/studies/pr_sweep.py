@@ -1,6 +1,6 @@
 """PR's regulariser and start on the CMU files: the study behind PR's defaults (``nrsfm/solvers/pr.py``).
 
-    OMP_NUM_THREADS=1 python -m benchmarks.pr_sweep [--root DIR] [--jobs N] [--sequences a,b] [--out DIR]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.pr_sweep [--root DIR] [--jobs N] [--sequences a,b] [--out DIR]
                                                     [--rerun] [--no-progress]
 
 Runs the ``pr`` solver on every file under ``DIR/nrsfm`` with the paper's
@@ -25,7 +25,7 @@ from pathlib import Path
 from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
                                write_json, write_text_atomic)
 
-log = logging.getLogger("benchmarks.pr_sweep")
+log = logging.getLogger("benchmarks.studies.pr_sweep")
 
 #: (label, PR parameters); ``init_K="reference"`` takes CSF2's reference K of the sequence.
 CONFIGS = [

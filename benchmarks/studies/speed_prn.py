@@ -1,6 +1,6 @@
 """Speed of the PR loss and of a PRN training iteration.
 
-    python -m benchmarks.speed_prn [--repeats N] [--warmup N] [--device cpu|cuda] [--out DIR]
+    python -m benchmarks.studies.speed_prn [--repeats N] [--warmup N] [--device cpu|cuda] [--out DIR]
 
 Measures, for the paper's batch (4 groups x 32 frames x 17 joints, FCN width
 1024, float32):
@@ -91,7 +91,7 @@ def measure(device: str = "cpu", repeats: int = 50, groups: int = 4, group_size:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.speed_prn")
+    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.speed_prn")
     p.add_argument("--repeats", type=int, default=100)
     p.add_argument("--warmup", type=int, default=200, help="untimed training iterations first")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")

@@ -1,6 +1,6 @@
 """SPM's cameras refined by its own shape objective (``--set refine_cameras=true``): a study of the yoga gap.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.spm_cameras [--root DIR] [--jobs N] [--sequences a,b]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.spm_cameras [--root DIR] [--jobs N] [--sequences a,b]
         [--lams 0,0.3,3,30,300] [--iters 300] [--starts N] [--out DIR] [--rerun] [--no-progress]
 
 SPM's cameras minimise an orthonormality residual of ``pi_f G`` (:func:`nrsfm.solvers.spm.camera_step`); on
@@ -34,7 +34,7 @@ import numpy as np
 from benchmarks.common import (code_hash, config_hash, markdown_table, run_cells_from_args, run_metadata, write_csv,
                                write_outputs)
 
-log = logging.getLogger("benchmarks.spm_cameras")
+log = logging.getLogger("benchmarks.studies.spm_cameras")
 
 
 def parse_lams(text: str) -> list[float]:
@@ -61,10 +61,10 @@ def run_one(job: str, lams: list[float], iters: int, starts: int = 0) -> dict:
 
     import torch
 
-    from benchmarks.classic import load_benchmark_sequence
+    from benchmarks.classic import REFERENCE_SETTINGS, load_benchmark_sequence
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import camera_moves, e3d, rotation_error
-    from nrsfm.solvers.csf2 import refine_triple
+    from nrsfm.solvers.cameras import refine_triple
     from nrsfm.solvers.spm import (SPMParams, camera_step, choose_k, refine_cameras_nuclear, rotations_from_triple,
                                    shape_admm)
 
@@ -78,7 +78,7 @@ def run_one(job: str, lams: list[float], iters: int, starts: int = 0) -> dict:
     wm = wf.reshape(-1, seq.n_points)
     t0 = time.perf_counter()
     try:
-        k = choose_k(seq.name, wm, params.K)
+        k = choose_k(wm, params.K or REFERENCE_SETTINGS["spm"].get(seq.name, {}).get("K", 0))
         cameras = camera_step(wm, k, params.trace_weight)
     except NRSfMError as exc:
         return {**row, "status": "not run", "why": str(exc)}

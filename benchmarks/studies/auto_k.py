@@ -1,6 +1,6 @@
 """CSF2's automatic K against every K: noise-free and noisy synthetic tracks, and the CMU files.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.auto_k [--root DIR] [--jobs N] [--sequences a,b] [--missing 0.2]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.auto_k [--root DIR] [--jobs N] [--sequences a,b] [--missing 0.2]
         [--out DIR] [--rerun] [--no-progress]
 
 For each sequence, CSF2 (:mod:`nrsfm.solvers.csf2`, its defaults otherwise) runs with every K from 1 to the
@@ -12,7 +12,7 @@ turning camera, noise-free and with 1% and 5% 2D noise, three seeds; K = 3 and 5
 synthetic faces; with data, every CMU file as it is and with 1% noise (the shark also with 0.3%). Writes
 CSV/JSON/Markdown to ``runs/auto_k``; cells are saved and resumed as in ``benchmarks.classic``.
 
-``--missing 0.2`` first marks that fraction of entries missing (:func:`benchmarks.classic.drop_entries`) and
+``--missing 0.2`` first marks that fraction of entries missing (:func:`nrsfm.datasets.synthetic.drop_entries`) and
 runs CSF2-occlusion; the ranks are then the visible entries' exact rank
 (:func:`nrsfm.solvers.base.visible_rank`) and the noisy tracks' rank
 (:func:`nrsfm.solvers.base.noise_visible_rank`), the previous rule is the one before session 27 (the exact rank,
@@ -31,7 +31,7 @@ import numpy as np
 
 from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
-log = logging.getLogger("benchmarks.auto_k")
+log = logging.getLogger("benchmarks.studies.auto_k")
 
 SMOOTH = [(k, seed, noise) for k in (2, 3, 4) for noise in (0.0, 0.01, 0.05) for seed in (1, 2, 3)]
 RANDOM = [(k, noise) for k in (3, 5) for noise in (0.0, 0.01)]
@@ -56,7 +56,7 @@ def make_sequence(job: str, missing: float = 0.0):
     """``smooth:K:SEED:NOISE`` / ``random:K:SEED:NOISE`` (300 x 41 low-rank tracks), ``face:NOISE`` (one 300-frame
     synthetic face) or ``FILE:NOISE`` (a CMU file, with 2D noise of that fraction of the tracks' RMS, fixed
     seed) as a :class:`~nrsfm.sequence.Sequence`, with ``missing`` of its entries hidden."""
-    from benchmarks.classic import drop_entries
+    from nrsfm.datasets.synthetic import drop_entries
 
     return drop_entries(_make_complete(job), missing)
 
@@ -97,8 +97,8 @@ def previous_rule(w: np.ndarray, k_max: int = 8, rel_tol: float = 1e-6) -> int:
 def rank_info(job: str, missing: float = 0.0) -> dict:
     """The automatic rule's inputs and outputs on a job's W: numerical rank (with missing entries: the visible
     entries' exact rank), noise rank, K (new and old), cap."""
-    from nrsfm.solvers.base import noise_rank, noise_visible_rank, visible_rank
-    from nrsfm.solvers.csf2 import auto_k, auto_k_max_rank, k_for_rank
+    from nrsfm.lowrank import noise_rank, noise_visible_rank, visible_rank
+    from nrsfm.solvers.starts import auto_k, auto_k_max_rank, k_for_rank
 
     seq = make_sequence(job, missing)
     w = seq.measurement_matrix()

@@ -1,0 +1,150 @@
+"""The starts that several solvers share: CSF2's reconstruction and its automatic K.
+
+PR, EM-PND, EM-PPCA and the consensus start from CSF2's reconstruction (:func:`csf2_start`,
+:func:`csf2_reconstruction`), and CSF2 and PR choose K by one rule (:func:`auto_k`): ``ceil(r / 3)``, plus one
+when 3 does not divide ``r`` (a basis of deficient rank: rank 5 needs K = 3), at most ``k_max`` and with
+3K < min(2F, P), for a rank ``r`` of the centred W:
+
+* complete tracks: the numerical rank where W is rank deficient (noise-free tracks); otherwise the rank of
+  noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_rank`, Gavish & Donoho's threshold where the spectrum has
+  a gap), and the cap where there is no gap (real motion capture);
+* missing points: the smallest rank that fits the visible entries exactly (:func:`~nrsfm.lowrank.visible_rank`),
+  else the noise floor of a ladder of fits (:func:`~nrsfm.lowrank.noise_visible_rank`), else the cap.
+
+A solver that runs others (the consensus: EM-PND and PR) wraps them in :func:`shared_starts`, inside which each
+start and each noise rank is computed once per input and handed out as copies. CSF2 itself is reached through the
+registry, so this module imports no solver.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import hashlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from nrsfm.lowrank import noise_rank, noise_visible_rank, power_of_two_unit, visible_rank
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.sequence import Sequence
+from nrsfm.solvers.registry import get_solver
+
+
+def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
+           max_frames: int = 300, max_points: int = 60, fit: tuple[int, np.ndarray | None] | None = None) -> int:
+    """CSF2's automatic K for a `(2F, P)` W: ``ceil(r / 3)``, plus one when 3 does not divide ``r``, for a rank
+    ``r`` of the centred W, at most ``k_max`` and with 3K < min(2F, P) (module docstring).
+
+    ``r`` is the numerical rank (singular values above ``rel_tol`` times the largest) when W is rank deficient;
+    when it is not, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_rank`), and the cap
+    where W does not look like one (real motion capture).
+
+    With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less
+    than ``rel_tol`` of their RMS (:func:`~nrsfm.lowrank.visible_rank`, on at most ``max_frames`` frames and
+    ``max_points`` points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); where none
+    fits, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_visible_rank`, seconds: 4.9 s on
+    drink and 9.2 s on dance with 20% missing for the whole rule, one core), and the cap where there is none.
+    """
+    cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
+    if mask is not None and not mask.all():
+        max_rank = auto_k_max_rank(w, k_max)
+        rank = (fit or visible_rank(w, mask, max_rank, rel_tol=rel_tol, max_frames=max_frames,
+                                    max_points=max_points))[0]
+        if not rank:
+            rank = shared("noise_visible_rank", (w / power_of_two_unit(w, mask), mask, max_rank, max_frames,
+                                                  max_points),
+                           lambda: noise_visible_rank(w, mask, max_rank, max_frames=max_frames, max_points=max_points))
+    else:
+        s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
+        rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
+        if rank >= min(w.shape[0], w.shape[1] - 1):
+            rank = noise_rank(s, w.shape)
+    return k_for_rank(rank, cap)
+
+
+def k_for_rank(rank: int, cap: int) -> int:
+    """:func:`auto_k`'s K for a rank: ``ceil(rank / 3)``, plus one when 3 does not divide it, at most ``cap``;
+    ``cap`` for rank 0 (none found)."""
+    if not rank:
+        return cap
+    return max(1, min(cap, -(-rank // 3) + (rank % 3 != 0)))
+
+
+def auto_k_max_rank(w: np.ndarray, k_max: int = 8) -> int:
+    """The largest rank :func:`auto_k` tests on a `(2F, P)` W with missing entries: 3 (cap - 2)."""
+    return 3 * (max(1, min(k_max, min(w.shape) // 3)) - 2)
+
+
+def fits_csf2(n_frames: int, n_points: int) -> bool:
+    """Whether CSF2 can run: it needs 3K <= min(2F, P) with K >= 2."""
+    return min(2 * n_frames, n_points) >= 6
+
+
+_SHARED_STARTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("csf2_shared_starts", default=None)
+
+
+@contextlib.contextmanager
+def shared_starts():
+    """Within this block, :func:`csf2_start` computes each start once and hands out copies.
+
+    Solvers that run other solvers (the consensus: EM-PND and PR) start both from the same CSF2 reconstruction
+    when points are missing (its occlusion-aware form, 50 camera rounds; 10 s of drink with 20% missing). A
+    start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the K it chose too,
+    where that K given would search the same ranks) and the other settings; the cache ends with the block.
+    So is the noise rank of :func:`auto_k` with missing points (most of its 4.9 s on drink with 20% missing),
+    which both solvers' automatic K compute.
+    """
+    token = _SHARED_STARTS.set({})
+    try:
+        yield
+    finally:
+        _SHARED_STARTS.reset(token)
+
+
+def shared(name: str, key: tuple, compute: Callable[[], Any]) -> Any:
+    """``compute()``, or inside :func:`shared_starts` its value for the same ``name`` and ``key`` (arrays in it by
+    their bytes) when already computed there."""
+    cache = _SHARED_STARTS.get()
+    if cache is None:
+        return compute()
+    digest = hashlib.sha256(name.encode())
+    for part in key:
+        if isinstance(part, np.ndarray):
+            digest.update(f"{part.dtype}{part.shape}".encode())
+            digest.update(np.ascontiguousarray(part).tobytes())
+        else:
+            digest.update(repr(part).encode())
+    if digest.hexdigest() not in cache:
+        cache[digest.hexdigest()] = compute()
+    return cache[digest.hexdigest()]
+
+
+def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
+    """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
+    3K <= min(2F, P) (0: the automatic rule); ``overrides``: other :class:`CSF2Params` fields. Check
+    :func:`fits_csf2` first. Inside :func:`shared_starts`, computed once per input."""
+    k = min(K, min(2 * seq.n_frames, seq.n_points) // 3)
+    cache = _SHARED_STARTS.get()
+    if cache is None:
+        return csf2_reconstruction(seq, k, **overrides).points_3d
+    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
+    data = (digest.hexdigest(), seq.points_2d.shape, seq.projection, tuple(sorted(overrides.items())))
+    if (data, k) not in cache:
+        rec = csf2_reconstruction(seq, k, **overrides)
+        cache[data, k] = rec.points_3d
+        if 3 * rec.info["K"] >= auto_k_max_rank(np.empty((2 * seq.n_frames, seq.n_points))):
+            # the automatic K searched the same ranks as this K given would: the same start
+            cache[data, rec.info["K"]] = rec.points_3d
+    return cache[data, k].copy()
+
+
+def csf2_reconstruction(seq: Sequence, K: int = 0, **overrides: Any) -> Reconstruction:
+    """CSF2's :class:`~nrsfm.reconstruction.Reconstruction` of ``seq`` without the registry's input checks and
+    timing (the caller has checked ``seq``): cameras and shapes for the solvers that start from both (EM-PPCA).
+    ``overrides``: other CSF2 parameters."""
+    spec = get_solver("csf2")
+    return spec.solve.__wrapped__(seq, spec.params(K=K, **overrides))
+
