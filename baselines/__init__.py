@@ -1,1 +1,1 @@
-"""Baselines of the PRN tables (+NN on NRSfM labels, C3DPO, GT-3D upper bound). Work in progress."""
+"""Baselines of the PRN paper: networks trained on pseudo-3D labels of classical solvers ("+NN"), on ground-truth 3D, and C3DPO."""

@@ -1,14 +1,10 @@
 """Keep large temporary arrays on the heap while a solver runs (glibc only; a no-op elsewhere).
 
-glibc serves every allocation above its mmap threshold (at most 32 MiB by
-default) with a fresh ``mmap`` and returns it with ``munmap`` when freed, so
-a solver that allocates and frees the same 40-130 MiB temporaries in every
-iteration spends much of its time in the kernel zeroing new pages. EM-PND on
-drink (one thread, 132 iterations): 57.5 s wall of which 20.8 s system time;
-with the threshold at 256 MiB, 38.9 s and 0.9 s (peak memory 1.0 -> 1.2 GB).
-:func:`large_arrays_on_heap` raises the mmap and trim thresholds for the
-duration of a solve and then sets them to 32 / 64 MiB, the values glibc's own
-dynamic rule settles at after large frees.
+glibc serves every allocation above its mmap threshold (at most 32 MiB by default) with a fresh ``mmap`` and
+returns it with ``munmap`` when freed, so a solver that allocates and frees the same large temporaries in every
+iteration spends much of its time in the kernel zeroing new pages. :func:`large_arrays_on_heap` raises the mmap
+and trim thresholds for the duration of a solve and then sets them to 32 / 64 MiB, the values glibc's own dynamic
+rule settles at after large frees.
 """
 
 from __future__ import annotations

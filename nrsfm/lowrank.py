@@ -26,25 +26,20 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
     """Fit a rank-``rank`` matrix plus a per-row translation to the visible entries of `(2F, P)` ``w``.
 
     Variable projection (Wiberg; Hong & Fitzgibbon, ICCV 2015): the `(rank, P)` column factor B is optimised by
-    Levenberg-Marquardt with Kaufman's Gauss-Newton matrix, the row factors and translations eliminated in closed
-    form per frame. ``mask`` rows come in frame pairs (a missing point hides both of its rows). The start is
-    ``start`` `(r0, P)`, r0 < ``rank`` (a lower-rank fit's factor), completed by the leading directions of the
-    rank-``rank`` hard imputation (:func:`impute_lowrank`) outside it; or that imputation alone. On nearly rigid
-    tracks (the synthetic face, rank 7, 20% missing, fitted at rank 9) this reached 2e-6 of the RMS in 27
-    iterations, where alternating least squares stalls at .0044 and hard imputation leaves a next singular value
-    of .0061 of the largest after 200 sweeps. It has local minima too (the shark, exact rank 5, at rank 6 from the
-    imputation: .0041), which fitting every rank in turn avoids, and random restarts (:func:`visible_rank`).
+    Levenberg-Marquardt with Kaufman's Gauss-Newton matrix, the row factors and translations eliminated in closed form
+    per frame. ``mask`` rows come in frame pairs (a missing point hides both of its rows). The start is ``start``
+    `(r0, P)`, r0 < ``rank`` (a lower-rank fit's factor), completed by the leading directions of the rank-``rank``
+    hard imputation (:func:`impute_lowrank`) outside it; or that imputation alone. It has local minima, which fitting
+    every rank in turn and random restarts avoid (:func:`visible_rank`).
 
     The cost depends on the row space of ``[B; 1]`` alone, so the steps move B only along its orthogonal complement
-    (``r (P - r - 1)`` unknowns): the Gauss-Newton matrix loses its gauge null space, 396 rather than 738 unknowns
-    at rank 18 on 41 points. Against steps in all of B (session 30): :func:`noise_visible_rank` on 34 noisy
-    sequences, each perturbed by 1e-13 of its entries three times, changed rank on none (before: on 8, drink with 1%
-    noise 0 or 7), and ``csf2.auto_k`` on drink with 20% missing took 4.9 s instead of 8.0 s.
+    (``r (P - r - 1)`` unknowns): the Gauss-Newton matrix has no gauge null space, and the minimum reached does not
+    depend on rounding.
 
     Returns:
-        The RMS residual on the visible entries over the RMS of the visible entries (each row centred on its
-        visible mean), and B `(rank, P)` with orthonormal rows. The search stops once the residual falls below
-        ``rel_tol``, when ten iterations gain less than a relative 1e-6, or after ``max_iter`` iterations.
+        The RMS residual on the visible entries over the RMS of the visible entries (each row centred on its visible
+        mean), and B `(rank, P)` with orthonormal rows. The search stops once the residual falls below ``rel_tol``,
+        when ten iterations gain less than a relative 1e-6, or after ``max_iter`` iterations.
     """
     n_points = w.shape[1]
     ones = np.ones((1, n_points))
@@ -88,23 +83,13 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
         return np.inf, b
     history = [relative(cost)]
     damping = 1e-4
-    upper = np.triu_indices(rank)  # J^T J's (i, j) and (j, i) blocks are equal: one product for both
     n_free = n_points - rank - 1  # directions a row of B can move in that change the fit
     for _ in range(max_iter):
         if history[-1] < rel_tol or n_free < 1:
             break
-        ar = a[:, :rank]  # (F, r, 2)
         # the cost depends on the row space of [B; 1] alone: steps along its orthogonal complement Q
         q = np.linalg.qr(np.vstack([b, ones]).T, mode="complete")[0][:, rank + 1:]  # (P, P - r - 1)
-        grad = -np.einsum("fki,fip->kp", ar, e) @ q  # (r, P - r - 1)
-        # Kaufman: J^T J = sum_f (sum_rows a a^T) kron Q^T (diag(vis_f) - P_f) Q, P_f the projection on [B; 1]
-        vq = vis[:, :, None] * q  # (F, P, P - r - 1)
-        c = bd @ vq  # (F, r+1, P - r - 1)
-        proj = q.T @ vq - c.transpose(0, 2, 1) @ np.linalg.solve(gram, c)  # (F, P - r - 1, P - r - 1)
-        blocks = (ar[:, upper[0]] * ar[:, upper[1]]).sum(axis=2).T @ proj.reshape(len(proj), -1)
-        jtj = np.empty((rank, rank, n_free * n_free))
-        jtj[upper], jtj[upper[::-1]] = blocks, blocks
-        jtj = jtj.reshape(rank, rank, n_free, n_free).transpose(0, 2, 1, 3).reshape(rank * n_free, -1)
+        grad, jtj = _gradient_and_gauss_newton(a[:, :rank], e, bd, gram, vis, q)
         diag = np.diag(jtj).copy() + 1e-12 * max(float(np.diag(jtj).max()), 1e-300)
         while damping < 1e10:
             step = np.linalg.solve(jtj + damping * np.diag(diag), -grad.ravel()).reshape(rank, n_free) @ q.T
@@ -122,27 +107,40 @@ def lowrank_fit(w: np.ndarray, mask: np.ndarray, rank: int, *, start: np.ndarray
     return history[-1], b
 
 
+def _gradient_and_gauss_newton(ar: np.ndarray, e: np.ndarray, bd: np.ndarray, gram: np.ndarray, vis: np.ndarray,
+                               q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lowrank_fit`'s gradient `(r, n)` and Kaufman Gauss-Newton matrix `(r n, r n)` in the directions
+    ``q`` `(P, n)` (the orthogonal complement of ``[B; 1]``, n = P - r - 1), from the row factors ``ar``
+    `(F, r, 2)`, the residuals ``e`` `(F, 2, P)`, the visible rows of ``[B; 1]`` ``bd`` `(F, r+1, P)`, their Gram
+    matrices ``gram`` `(F, r+1, r+1)` and the visibility ``vis`` `(F, P)`.
+
+    ``J^T J = sum_f (sum_rows a a^T) kron Q^T (diag(vis_f) - P_f) Q``, ``P_f`` the projection on ``[B; 1]``.
+    """
+    rank, n_free = ar.shape[1], q.shape[1]
+    grad = -np.einsum("fki,fip->kp", ar, e) @ q  # (r, n)
+    vq = vis[:, :, None] * q  # (F, P, n)
+    c = bd @ vq  # (F, r+1, n)
+    proj = q.T @ vq - c.transpose(0, 2, 1) @ np.linalg.solve(gram, c)  # (F, n, n)
+    upper = np.triu_indices(rank)  # J^T J's (i, j) and (j, i) blocks are equal: one product for both
+    blocks = (ar[:, upper[0]] * ar[:, upper[1]]).sum(axis=2).T @ proj.reshape(len(proj), -1)
+    jtj = np.empty((rank, rank, n_free * n_free))
+    jtj[upper], jtj[upper[::-1]] = blocks, blocks
+    return grad, jtj.reshape(rank, rank, n_free, n_free).transpose(0, 2, 1, 3).reshape(rank * n_free, -1)
+
+
 def noise_rank(s: np.ndarray, shape: tuple[int, int], *, min_gap: float = 1.5) -> int:
     """The rank of noisy low-rank tracks from the singular values ``s`` of a centred `(2F, P)` W, or 0.
 
-    Gavish & Donoho's hard threshold for white noise of unknown level ("The optimal hard threshold for singular
-    values is 4/sqrt(3)", IEEE T-IT 2014): keep the singular values above ``omega(beta) * median(s)``, with
-    ``omega(beta) = 0.56 beta^3 - 0.95 beta^2 + 1.82 beta + 1.43`` and ``beta`` the aspect ratio of the
-    `(2F, P - 1)` matrix (centring removes one column's worth of rank). The count is returned only where W looks
-    like a low-rank signal plus noise:
+    Gavish & Donoho's hard threshold for white noise of unknown level ("The optimal hard threshold for singular values
+    is 4/sqrt(3)", IEEE T-IT 2014): keep the singular values above ``omega(beta) * median(s)``, with
+    ``omega(beta) = 0.56 beta^3 - 0.95 beta^2 + 1.82 beta + 1.43`` and ``beta`` the aspect ratio of the `(2F, P - 1)`
+    matrix (centring removes one column's worth of rank). The count is returned only where W looks like a low-rank
+    signal plus noise:
 
-    * the kept values stand clear of the rest: the last kept at least ``min_gap`` times the first dropped. Real
-      motion capture decays without such a gap (the CMU files, alone or with 0.3-3% added noise: 1.04-1.39);
-      synthetic low-rank tracks and faces with 1-5% noise show 1.5-177 where the threshold finds their rank
-      (some with 5% noise show 1.2-1.4 and keep the cap; ``min_gap`` 2, the first choice, left five more of
-      them at the cap: e3D .41-.72 where their K gives .08-.49, ``benchmarks.studies.auto_k``);
-    * the median was the noise's: the median of the values beyond the count gives the same count. When the
-      rank is more than half of P - 1 the median lies in the signal and the count falls short (10 points of
-      rank 6 with 1% noise: 3, which gave CSF2 e3D .43 against .16 at the cap; 17 points of rank 9: 7); 18 of
-      the 20 CMU variants above fail it too. Iterating that median to a fixed point finds 9 on the 17-point tracks, but
-      CSF2 at that K was better on one of three (``benchmarks.classic.long_sequence(F, 0.01)``, F = 300 /
-      1000 / 3000: e3D .0445 / .0314 / .6248 against .5671 / .0181 / .3124 at the cap; EM-PPCA .0308 /
-      .0234 / .6815 against .0327 / .0236 / .0579), so such spectra keep the cap.
+    * the kept values stand clear of the rest: the last kept at least ``min_gap`` times the first dropped (real motion
+      capture decays without such a gap);
+    * the median was the noise's: the median of the values beyond the count gives the same count (when the rank is
+      more than half of P - 1 the median lies in the signal and the count falls short).
 
     Args:
         s: singular values of the centred W, descending.
@@ -165,22 +163,19 @@ def noise_rank(s: np.ndarray, shape: tuple[int, int], *, min_gap: float = 1.5) -
 
 def visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, *, rel_tol: float = 1e-6, max_frames: int = 300,
                  max_points: int = 60, restarts: int = 4) -> tuple[int, np.ndarray | None]:
-    """The smallest rank r <= ``max_rank`` whose fit (:func:`lowrank_fit`) leaves less than ``rel_tol`` of the RMS
-    of the visible entries of `(2F, P)` ``w``, and its column factor over every point.
+    """The smallest rank r <= ``max_rank`` whose fit (:func:`lowrank_fit`) leaves less than ``rel_tol`` of the RMS of
+    the visible entries of `(2F, P)` ``w``, and its column factor over every point.
 
-    Ranks 1, 2, ... are fitted in turn on at most ``max_frames`` evenly spaced frames and ``max_points`` points,
-    each started from the fit a rank below (an exactly low-rank W stays so on a subset). Variable projection has
-    local minima that this ladder can step over (the 300-frame synthetic faces, exact rank 7 with 20% missing: the
-    ladder stalls at rank 7 at .0014 of the RMS and fits rank 8, whose completion is not unique), so from a fitted
-    rank the rank below is tried again from the fill's leading directions and from ``restarts`` random starts
-    (fixed seed); on the faces a random start reaches 2e-8. First of all one fit at ``max_rank`` (30 iterations)
-    screens out tracks that are not low-rank: where it leaves more than 100 ``rel_tol`` (the CMU mocap files with
-    20% missing at rank 18: 9e-4 to 6e-3 of the RMS; the noise-free faces: below 1e-6) the ladder is skipped.
+    Ranks 1, 2, ... are fitted in turn on at most ``max_frames`` evenly spaced frames and ``max_points`` points, each
+    started from the fit a rank below (an exactly low-rank W stays so on a subset). Variable projection has local
+    minima that this ladder can step over, so from a fitted rank the rank below is tried again from the fill's leading
+    directions and from ``restarts`` random starts (fixed seed). First of all one fit at ``max_rank`` (30 iterations)
+    screens out tracks that are not low-rank: where it leaves more than 100 ``rel_tol`` the ladder is skipped.
 
     Returns:
-        ``(r, B)`` with B `(r, P)` fitted to every point on the sampled frames (the columns outside the sample by
-        least squares on the sampled frames' row factors, then refined), or ``(0, None)`` when no rank up to
-        ``max_rank`` fits.
+        ``(r, B)`` with B `(r, P)` fitted to every point on the sampled frames (the columns outside the sample by least
+        squares on the sampled frames' row factors, then refined), or ``(0, None)`` when no rank up to ``max_rank``
+        fits.
     """
     if max_rank < 1:
         return 0, None
@@ -247,28 +242,21 @@ def noise_visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, *, max_fr
     """The rank of noisy low-rank tracks with missing entries (`(2F, P)` ``w``, ``mask`` False where hidden), or 0.
 
     The counterpart of :func:`noise_rank` where no SVD exists. Ranks 1, ..., ``max_rank`` are fitted to the visible
-    entries in turn (:func:`lowrank_fit`, each from the fit a rank below, ``max_iter`` iterations, on the frames
-    and points :func:`visible_rank` samples). With complete tracks the residual sum of squares at rank r is the sum
-    of the squared singular values beyond r, so ``s_r = sqrt(RSS(r - 1) - RSS(r))`` are the singular values; with
-    missing entries they are this ladder's "pseudo singular values". Noisy low-rank tracks show large values up to
-    their rank and then a flat floor (the noise's), as a spectrum does:
+    entries in turn (:func:`lowrank_fit`, each from the fit a rank below, ``max_iter`` iterations, on the frames and
+    points :func:`visible_rank` samples). With complete tracks the residual sum of squares at rank r is the sum of the
+    squared singular values beyond r, so ``s_r = sqrt(RSS(r - 1) - RSS(r))`` are the singular values; with missing
+    entries they are this ladder's "pseudo singular values". Noisy low-rank tracks show large values up to their rank
+    and then a flat floor (the noise's), as a spectrum does:
 
-    * the rank r is the largest with ``s_r >= min_gap * max(s_{r+1}, ...)``, with at least ``min_tail`` values
-      beyond it;
-    * those values must be flat as noise's are: their spread (largest / smallest) at most ``max_spread`` times
-      that of the same values of pure noise, the singular values of a fixed-seed Gaussian matrix of the sampled
-      shape less the rank (noise's own spread grows as the matrix gets squarer, Marchenko-Pastur: 1.50 for the
-      120 x 30 sample of a 60-frame, 30-point sequence, 1.09-1.20 for 600 x 41). Real motion capture decays
-      without a floor: the CMU files with 20% missing, as they are and with 1% noise, 1.87-6.8 times the
-      reference beyond such a gap; 300 x 41 synthetic low-rank tracks with 1% noise 0.99-1.24, with 5% noise
-      0.93-1.48, four synthetic faces and the jaws with 1% noise 1.03-1.13 (``benchmarks.studies.auto_k --missing 0.2``
-      scores the K). An absolute bound on the spread (1.4) failed on that 60 x 30 sequence, whose unconverged
-      ladder's floor spread moved between 1.27 and 1.55 with the BLAS thread count (before
-      :func:`lowrank_fit` left the gauge out of its steps, when 30 iterations did not reach a minimum);
-    * the ladder has local minima (a fit at rank r that misses a signal direction and takes a noise one: the
-      shark with 1% noise, s_5 < s_6). So the rank below is refitted from the fill's leading directions and from
-      ``restarts`` random starts (fixed seed), and the rank lowered while that fit leaves the gap below
-      ``min_gap``.
+    * the rank r is the largest with ``s_r >= min_gap * max(s_{r+1}, ...)``, with at least ``min_tail`` values beyond
+      it;
+    * those values must be flat as noise's are: their spread (largest / smallest) at most ``max_spread`` times that of
+      the same values of pure noise, the singular values of a fixed-seed Gaussian matrix of the sampled shape less the
+      rank (noise's own spread grows as the matrix gets squarer, Marchenko-Pastur). Real motion capture decays without
+      such a floor;
+    * the ladder has local minima (a fit at rank r that misses a signal direction and takes a noise one). So the rank
+      below is refitted from the fill's leading directions and from ``restarts`` random starts (fixed seed), and the
+      rank lowered while that fit leaves the gap below ``min_gap``.
     """
     if max_rank < min_tail + 1:
         return 0
@@ -308,9 +296,10 @@ def noise_visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, *, max_fr
 
 def masked_lstsq(a: np.ndarray, b: np.ndarray, vis: np.ndarray, ridge: float = 1e-10) -> np.ndarray:
     """Per column p: argmin_s sum_f vis_fp ||a_f s - b_fp||^2 + ridge' ||s||^2 for `(F, R, C)` a (R rows per
-    frame, seen or missing together), `(F, R, P)` b and `(F, P)` visibility, with ``ridge' = ridge * mean diagonal
-    of the normal matrix``. The per-point normal matrices come from the per-frame ones (F of them, not F R; drink,
-    K = 10: 3.3 ms against 5.8 ms from the row outer products). Returns `(C, P)`."""
+    frame, seen or missing together), `(F, R, P)` b and `(F, P)` visibility, with ``ridge' = ridge * mean diagonal of
+    the normal matrix``. The per-point normal matrices come from the per-frame ones (F of them, not F R). Returns
+    `(C, P)`.
+    """
     n_frames, n_rows, c = a.shape
     if np.all(vis > 0):
         a2 = a.reshape(n_frames * n_rows, c)
@@ -352,15 +341,10 @@ def complete_lowrank(w: np.ndarray, mask: np.ndarray, rank: int, fit: tuple[int,
     translation per row (:func:`visible_rank`, or ``fit``, its result), otherwise by hard imputation
     (:func:`impute_lowrank`).
 
-    The exact fill uses the smallest such rank (a larger one's completion is not unique) and is kept when it
-    leaves less than ``rel_tol`` of the RMS on the visible entries.
-    Hard imputation stops short of the exact completion on nearly rigid tracks: on four 150-frame synthetic faces
-    with 20% missing its fill is off by .9 to 1.3 of the largest entry (the exact fill: 1e-10 to 3e-6).
-
-    A point seen in at most r rows does not fix its column either; then W is imputed. A frame with at most r + 1
-    visible points does not fix its row factor; then every frame is imputed too (filling
-    the others exactly and imputing those around them made the synthetic 3000 x 17 smooth-camera sequence with
-    20% missing worse: CSF2-occlusion .274 -> .562, PR .0096 -> .0272).
+    The exact fill uses the smallest such rank (a larger one's completion is not unique) and is kept when it leaves
+    less than ``rel_tol`` of the RMS on the visible entries; hard imputation stops short of the exact completion on
+    nearly rigid tracks. A point seen in at most r rows does not fix its column, and a frame with at most r + 1
+    visible points does not fix its row factor; then the whole W is imputed.
 
     Returns:
         The filled `(2F, P)` matrix (visible entries unchanged) and ``"exact"`` or ``"imputed"``.

@@ -108,13 +108,11 @@ def e3d(pred: np.ndarray, gt: np.ndarray, *, frame: Frame = "camera", pred_rotat
 def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarray) -> np.ndarray:
     """Per-frame camera error of Akhter et al. (NIPS 2008), the ``Rotation_Err`` of Dai et al.'s SPM code.
 
-    The two camera rows of every frame are stacked into `(2F, 3)` matrices; one global orthogonal matrix
-    (least squares, a reflection allowed: the depth sign of orthographic NRSfM is ambiguous) takes the
-    prediction's rows to the ground truth's; each frame's error is the spectral norm (the largest singular value)
-    of its `(2, 3)` difference: ``norm()`` of a matrix in their MATLAB code (``compareRotations``), and with it
-    SPM's cameras give the authors' drink and stretch numbers to four digits (.0071, .0676; the Frobenius
-    norm gives .0077 and .0748). 0 for exact cameras; ``2 sin(t / 2)`` for a frame turned by ``t`` about the
-    optical axis (2 at 180 degrees).
+    The two camera rows of every frame are stacked into `(2F, 3)` matrices; one global orthogonal matrix (least
+    squares, a reflection allowed: the depth sign of orthographic NRSfM is ambiguous) takes the prediction's rows to
+    the ground truth's; each frame's error is the spectral norm (the largest singular value) of its `(2, 3)`
+    difference, as ``norm()`` of a matrix in their MATLAB code (``compareRotations``). 0 for exact cameras;
+    ``2 sin(t / 2)`` for a frame turned by ``t`` about the optical axis (2 at 180 degrees).
 
     Args:
         pred_rotations, gt_rotations: `(F, 3, 3)` camera rotations, ``X_cam = R X_obj`` (rows: the camera axes).

@@ -1,1 +1,1 @@
-"""Procrustean Regression Networks (Park, Kwak, Lee; ECCV 2020). Work in progress: see issue 4."""
+"""Procrustean Regression Networks (Park, Kwak & Lee, ECCV 2020): the PR loss, the FCN and CNN networks, training."""

@@ -5,7 +5,7 @@
 
 For each sequence, CSF2 (:mod:`nrsfm.solvers.csf2`, its defaults otherwise) runs with every K from 1 to the
 cap (8, and 3K < min(2F, P)); the table gives the camera-frame e3D at the K of the automatic rule
-(:func:`nrsfm.solvers.csf2.auto_k`), at the K of the rule before session 26 (:func:`previous_rule`: one basis
+(:func:`nrsfm.solvers.starts.auto_k`), at the K of a simpler rank rule (:func:`previous_rule`: one basis
 shape more than ``ceil(r / 3)`` always, the cap on full-rank tracks), at the cap, and the best K (known only
 with the ground truth). The sequences: synthetic K = 2-4 low-rank tracks (300 frames, 41 points) of a smoothly
 turning camera, noise-free and with 1% and 5% 2D noise, three seeds; K = 3 and 5 with random cameras; the
@@ -14,9 +14,8 @@ CSV/JSON/Markdown to ``runs/auto_k``; cells are saved and resumed as in ``benchm
 
 ``--missing 0.2`` first marks that fraction of entries missing (:func:`nrsfm.datasets.synthetic.drop_entries`) and
 runs CSF2-occlusion; the ranks are then the visible entries' exact rank
-(:func:`nrsfm.solvers.base.visible_rank`) and the noisy tracks' rank
-(:func:`nrsfm.solvers.base.noise_visible_rank`), the previous rule is the one before session 27 (the exact rank,
-else the cap). Every K runs only where the two rules differ; elsewhere (and on the CMU files, where
+(:func:`nrsfm.lowrank.visible_rank`) and the noisy tracks' rank
+(:func:`nrsfm.lowrank.noise_visible_rank`), and the simpler rule is the exact rank, else the cap. Every K runs only where the two rules differ; elsewhere (and on the CMU files, where
 CSF2-occlusion takes tens of seconds a K) only the rules' K and the cap, so "best K" is over those. Output to
 ``runs/auto_k-missing0.2``.
 """
@@ -86,7 +85,7 @@ def _make_complete(job: str):
 
 
 def previous_rule(w: np.ndarray, k_max: int = 8, rel_tol: float = 1e-6) -> int:
-    """CSF2's automatic K until session 26 (complete tracks): ``min(cap, ceil(r / 3) + 1)``, r the numerical
+    """A simpler automatic K for comparison (complete tracks): ``min(cap, ceil(r / 3) + 1)``, r the numerical
     rank of the centred W (full on noisy tracks, so the cap there)."""
     cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
     s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)

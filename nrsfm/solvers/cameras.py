@@ -16,11 +16,8 @@ import scipy.optimize
 def refine_triple(pi: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, float]:
     """Minimise the scale-invariant orthonormality residual of ``pi @ G`` from ``g0``.
 
-    BFGS (analytic gradient) followed by a Levenberg-Marquardt polish, and LM
-    from ``g0`` alone; the lower cost wins. LM alone is fragile: on drink
-    (SPM, K = 12) it stalls at cost 4.0 (cameras 15 degrees off) or reaches
-    7e-4 (0.3 degrees) depending on the BLAS thread count; BFGS reaches 7e-4
-    either way.
+    BFGS (analytic gradient) followed by a Levenberg-Marquardt polish, and LM from ``g0`` alone; the lower cost wins
+    (LM alone can stall in a poor minimum).
 
     Args:
         pi: `(F, 2, 3K)` rank-3K factor; g0: `(3K, 3)` start.

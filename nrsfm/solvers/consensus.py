@@ -1,24 +1,18 @@
 """Consensus: a weighted average of the reconstructions of several solvers.
 
-Two solvers built on different models make partly independent errors, so a
-weighted mean of their camera-frame shapes can be closer to the truth than
-either. The default pairs EM-PND (a Procrustean normal distribution of the
-shapes) with PR (Procrustean regression: a log-determinant of the aligned
-shapes, from CSF2's start) at weights 0.85 and 0.15.
+Two solvers built on different models make partly independent errors, so a weighted mean of their camera-frame
+shapes can be closer to the truth than either. The default pairs EM-PND (a Procrustean normal distribution of the
+shapes) with PR (Procrustean regression: a log-determinant of the aligned shapes, from CSF2's start) at weights
+0.85 and 0.15.
 
-Each reconstruction is centred per frame and, frame by frame, given the depth
-sign (the reflection ``z -> -z`` that orthographic projection cannot see) that
-brings it closer to the first method's; the image coordinates are untouched.
-The cameras are the weighted chordal mean of the solvers' rotations (the same
-reflection applied as ``D R D``, ``D = diag(1, 1, -1)``), projected onto SO(3).
+Each reconstruction is centred per frame and, frame by frame, given the depth sign (the reflection ``z -> -z``
+that orthographic projection cannot see) that brings it closer to the first method's; the image coordinates are
+untouched. The cameras are the weighted chordal mean of the solvers' rotations (the same reflection applied as
+``D R D``, ``D = diag(1, 1, -1)``), projected onto SO(3).
 
-The weight is a setting, not something learnt from the sequence: no ground
-truth and nothing else of the sequence chooses it. 0.85 is the leave-one-
-sequence-out choice on the six CMU files of ``benchmarks.studies.consensus_weight``:
-the weight that minimises the geometric mean of e3D(consensus) / e3D(EM-PND)
-over the other five files is 0.85 for four of them and the
-whole-set choice (drink: 0.65, the shark: 0.9). Measured numbers and the
-held-out e3D of each file: ``benchmarks/RESULTS.md``.
+The weight is a setting, not something learnt from the sequence: no ground truth and nothing else of the sequence
+chooses it. It was chosen on the CMU files leaving each file out in turn
+(``python -m benchmarks.studies.consensus_weight``).
 """
 
 from __future__ import annotations
@@ -42,10 +36,10 @@ class ConsensusParams:
     """Parameters of :func:`solve_consensus`.
 
     Attributes:
-        methods: comma-separated registered solvers, each run with its defaults; the first sets the depth
-            sign (default ``"empnd,pr"``).
-        weights: comma-separated non-negative weights, one per method, scaled to sum to 1 (default
-            ``"0.85,0.15"``: the leave-one-sequence-out choice on the CMU files, module docstring).
+        methods: comma-separated registered solvers, each run with its defaults; the first sets the depth sign
+            (default ``"empnd,pr"``).
+        weights: comma-separated non-negative weights, one per method, scaled to sum to 1 (default ``"0.85,0.15"``,
+            chosen leaving each CMU file out in turn: ``python -m benchmarks.studies.consensus_weight``).
     """
 
     methods: str = "empnd,pr"

@@ -190,7 +190,7 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
         # X is defined up to an invertible k x k factor (X -> X A keeps the column space of M), so H is singular
         # along X A; the steps orthogonal to those, X_perp C with X_perp `(d, d - k)` spanning the complement of
         # X's columns, give the same damped step as the minimum-norm solve of the full system (g has no
-        # component along X A) with a positive definite `((d - k) k)` system (drink, K = 10: 17.0 -> 3.3 s)
+        # component along X A) with a smaller, positive definite `((d - k) k)` system
         perp = np.linalg.qr(x, mode="complete")[0][:, k:]
         yy_perp = np.einsum("ab,aicj,cm->bimj", perp, yy, perp, optimize=True)  # (d - k, 3, d - k, 3)
         n_red = (d - k) * k
@@ -224,7 +224,7 @@ def fit_shape_gn(wc: np.ndarray, rows: np.ndarray, k: int, d: int, *, max_iter: 
 def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     """CSF2 on an orthographic sequence (missing points allowed). See the module docstring."""
 
-    n_frames, n_points = seq.n_frames, seq.n_points
+    n_frames = seq.n_frames
     vis = seq.weights > 0  # (F, P)
     require_visible_points(seq, "csf2")
     mask = np.repeat(vis, 2, axis=0)  # (2F, P)
@@ -235,6 +235,33 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     # the visible entries' exact rank, if any: for the automatic K and the completion
     max_rank = min(auto_k_max_rank(w), 3 * params.K) if params.K else auto_k_max_rank(w)
     fit = None if complete else visible_rank(w, mask, max_rank)
+    k, d = _basis_sizes(w, mask, fit, params)
+    full, completion = (w, "none") if complete else complete_lowrank(w, mask, 3 * k, fit)
+    t = full.mean(axis=1, keepdims=True)  # (2F, 1) translations
+    wc = full - t  # (2F, P)
+    omega = dct_basis(n_frames, d)  # (F, d)
+    rows, cam_residual, cam_cols = camera_rows(wc, params.energy)
+    shape, shape_start, deterministic = _shape_step(wc, rows, k, d, omega, params)
+    x, basis, it, converged, rmse = shape
+    rot = complete_rotation(rows)
+    rounds_run: dict[str, int] = {}
+    if completion == "imputed":  # an exact completion is as good as complete tracks: nothing to refine
+        rot, (x, basis, rmse), (it, converged), shape_start, rounds_run = _refine_on_visible_entries(
+            w, mask, t, rows, rot, omega, shape, shape_start, deterministic, params)
+    shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame
+    points = np.einsum("fij,fpj->fpi", rot, shapes_obj)
+    points -= points.mean(axis=1, keepdims=True)
+    return Reconstruction(points_3d=points * unit, rotations=rot, method="csf2", iterations=it, converged=converged,
+                          info={"K": k, "d": d, "rmse": float(rmse) * unit, "camera_residual": cam_residual,
+                                "camera_columns": cam_cols, "shape_start": shape_start, "completion": completion,
+                                "rounds": rounds_run})
+
+
+def _basis_sizes(w: np.ndarray, mask: np.ndarray, fit: tuple[int, np.ndarray | None] | None,
+                 params: CSF2Params) -> tuple[int, int]:
+    """K (given, or :func:`~nrsfm.solvers.starts.auto_k`) and d (given, or ceil(0.1 F) and at least K + 1) for the
+    unit-scaled `(2F, P)` ``w``; a clear error where they cannot fit the sequence."""
+    n_frames, n_points = w.shape[0] // 2, w.shape[1]
     k = params.K or auto_k(w, mask, fit=fit)
     if 3 * k > min(2 * n_frames, n_points):
         raise SolverError(f"csf2: K = {k} needs 3K <= min(2F, P) = {min(2 * n_frames, n_points)}; pass a smaller "
@@ -243,84 +270,98 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     if d < k:  # only a user's d can be: the rule gives d >= K + 1 (3K <= 2F leaves enough frames)
         raise SolverError(f"csf2: d = {d} DCT vectors cannot hold K = {k} orthonormal coefficient columns; pass "
                           f"d >= K (--set d={k}) or a smaller K")
-    full, completion = (w, "none") if complete else complete_lowrank(w, mask, 3 * k, fit)
-    t = full.mean(axis=1, keepdims=True)  # (2F, 1) translations
-    wc = full - t  # (2F, P)
-    omega = dct_basis(n_frames, d)  # (F, d)
-    rows, cam_residual, cam_cols = camera_rows(wc, params.energy)
+    return k, d
+
+
+def _shape_step(wc: np.ndarray, rows: np.ndarray, k: int, d: int, omega: np.ndarray, params: CSF2Params):
+    """Step 2 from the authors' start, the residual start and the random starts (module docstring).
+
+    Returns:
+        The kept fit ``(X, S, iterations, converged, RMSE)`` of :func:`fit_shape_gn`, the name of its start, and
+        the fits of the deterministic starts by name.
+    """
     shape_fit = functools.partial(fit_shape_gn, wc, rows, k, d, max_iter=params.max_iter, tol=params.tol,
                                   omega=omega)
-    x, basis, it, converged, rmse = shape_fit()
+    best = shape_fit()
     shape_start = "identity"
-    deterministic = {"identity": (x, basis, it, converged, rmse)}
+    deterministic = {"identity": best}
     if params.residual_start and k > 1:
         alt = deterministic["residual"] = shape_fit(x0=residual_start(wc, rows, omega, k))
-        if alt[4] < (1 - params.start_margin) * rmse:
-            (x, basis, it, converged, rmse), shape_start = alt, "residual"
+        if alt[4] < (1 - params.start_margin) * best[4]:
+            best, shape_start = alt, "residual"
     rng = np.random.default_rng(0)
-    threshold = params.random_accept * rmse
+    threshold = params.random_accept * best[4]
     for i in range(params.random_starts):
         alt = shape_fit(x0=np.linalg.qr(rng.standard_normal((d, k)))[0])
-        if alt[4] < min(threshold, rmse):
-            (x, basis, it, converged, rmse), shape_start = alt, f"random {i}"
-    rot = complete_rotation(rows)
+        if alt[4] < min(threshold, best[4]):
+            best, shape_start = alt, f"random {i}"
+    return best, shape_start, deterministic
+
+
+def _refine_on_visible_entries(w: np.ndarray, mask: np.ndarray, t: np.ndarray, rows: np.ndarray, rot: np.ndarray,
+                               omega: np.ndarray, shape: tuple, shape_start: str, deterministic: dict,
+                               params: CSF2Params):
+    """The missing-point refinement of the module docstring, after steps 1-2 on the imputed W.
+
+    Args:
+        w: `(2F, P)` unit-scaled tracks; mask: `(2F, P)` visible entries; t: `(2F, 1)` translations of the
+            completion; rows: `(F, 2, 3)` camera rows and rot `(F, 3, 3)` their rotations; omega: `(F, d)` DCT
+            basis; shape, shape_start, deterministic: :func:`_shape_step`'s result.
+
+    Returns:
+        ``rot``, ``(X, S, RMSE)`` on the visible entries, ``(iterations, converged)`` of the shape step, the
+        start's name and the rounds each run of camera rounds took.
+    """
+    n_frames = rows.shape[0]
+    x, basis, it, converged, rmse = shape
     rounds_run: dict[str, int] = {}
-    if completion == "imputed":  # an exact completion is as good as complete tracks: nothing to refine
-        # many small products and solves per iteration: BLAS threads cost more than they give here (1102 x 41,
-        # 20% missing, 2 cores: 102 s with two BLAS threads, 53 s with this limit; drink 330 s -> 168 s); the
-        # two runs of rounds below go on two Python threads instead (drink 114.7 s -> 99.5 s, the same result;
-        # 47 s with the race between them, _RoundRace)
-        with threadpool_limits(limits=1, user_api="blas"):
-            x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
-            scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
+    # many small products and solves per iteration: BLAS threads cost more than they give here, so BLAS runs
+    # on one thread and the two runs of rounds below go on two Python threads instead
+    with threadpool_limits(limits=1, user_api="blas"):
+        x, basis, rmse = _refine_masked(w - t, mask, rows, omega, x, params.refine_iter, params.ridge)
+        scale = float(np.sqrt((rows**2).sum() / (2 * n_frames)))
 
-            def probe(xb: tuple[np.ndarray, np.ndarray, float]) -> float:  # visible RMSE after a few rounds
-                if not params.camera_rounds:
-                    return xb[2]
-                n_probe = min(n for n in (params.round_iter, params.round_iter_alt) if n > 0)  # X/S its a round
-                with progress.listen(None):
-                    return _occlusion_rounds(w, mask, omega, rot, t.reshape(n_frames, 2), xb[0], xb[1] * scale,
-                                             min(_START_PROBE_ROUNDS, params.camera_rounds), n_probe,
-                                             params.ridge)[3]
+        def probe(xb: tuple[np.ndarray, np.ndarray, float]) -> float:  # visible RMSE after a few rounds
+            if not params.camera_rounds:
+                return xb[2]
+            n_probe = min(n for n in (params.round_iter, params.round_iter_alt) if n > 0)  # X/S its a round
+            with progress.listen(None):
+                return _occlusion_rounds(w, mask, omega, rot, t.reshape(n_frames, 2), xb[0], xb[1] * scale,
+                                         min(_START_PROBE_ROUNDS, params.camera_rounds), n_probe,
+                                         params.ridge)[3]
 
-            # the fit to the imputed entries does not rank the deterministic starts (module docstring): the other
-            # one is refined on the visible entries too and, where it ends elsewhere, both go a few camera rounds;
-            # it is taken when it then fits the visible entries more than start_margin better
-            other = {"identity": "residual", "residual": "identity"}.get(shape_start)  # none after a random start
-            if other in deterministic:
-                fit = deterministic[other]
-                alt = _refine_masked(w - t, mask, rows, omega, fit[0], params.refine_iter, params.ridge)
-                if abs(alt[2] - rmse) > 1e-4 * rmse and probe(alt) < (1 - params.start_margin) * probe(
-                        (x, basis, rmse)):
-                    (x, basis, rmse), (it, converged), shape_start = alt, fit[2:4], f"{other} (visible entries)"
-            if params.camera_rounds:
-                # alternate: cameras and translations on the visible entries, then X and S again (the camera
-                # upgrade above saw the imputed entries, whose errors it inherits); from the same start with
-                # round_iter and round_iter_alt X/S iterations per round, keeping the lower visible-entry RMSE
-                start = (rot, t.reshape(n_frames, 2), x, basis * scale)
-                order = [n for n in dict.fromkeys((params.round_iter, params.round_iter_alt)) if n > 0]  # ties: first
-                counts = sorted(order)
-                race = _RoundRace(params.race_margin, params.race_from) if len(counts) == 2 else None
-                # the two runs side by side on two threads: LAPACK releases the GIL, BLAS is on one thread each;
-                # the slower one (more X/S iterations per round) stops when it falls behind (_RoundRace)
-                listener = progress.current()  # the lead run reports its rounds to this thread's listener
+        # the fit to the imputed entries does not rank the deterministic starts (module docstring): the other
+        # one is refined on the visible entries too and, where it ends elsewhere, both go a few camera rounds;
+        # it is taken when it then fits the visible entries more than start_margin better
+        other = {"identity": "residual", "residual": "identity"}.get(shape_start)  # none after a random start
+        if other in deterministic:
+            fit = deterministic[other]
+            alt = _refine_masked(w - t, mask, rows, omega, fit[0], params.refine_iter, params.ridge)
+            if abs(alt[2] - rmse) > 1e-4 * rmse and probe(alt) < (1 - params.start_margin) * probe(
+                    (x, basis, rmse)):
+                (x, basis, rmse), (it, converged), shape_start = alt, fit[2:4], f"{other} (visible entries)"
+        if params.camera_rounds:
+            # alternate: cameras and translations on the visible entries, then X and S again (the camera
+            # upgrade above saw the imputed entries, whose errors it inherits); from the same start with
+            # round_iter and round_iter_alt X/S iterations per round, keeping the lower visible-entry RMSE
+            start = (rot, t.reshape(n_frames, 2), x, basis * scale)
+            order = [n for n in dict.fromkeys((params.round_iter, params.round_iter_alt)) if n > 0]  # ties: first
+            counts = sorted(order)
+            race = _RoundRace(params.race_margin, params.race_from) if len(counts) == 2 else None
+            # the two runs side by side on two threads: LAPACK releases the GIL, BLAS is on one thread each;
+            # the slower one (more X/S iterations per round) stops when it falls behind (_RoundRace)
+            listener = progress.current()  # the lead run reports its rounds to this thread's listener
 
-                def rounds(n_als: int, role: str):
-                    with progress.listen(listener if role == "lead" else None):
-                        return _occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge,
-                                                 race, role)
+            def rounds(n_als: int, role: str):
+                with progress.listen(listener if role == "lead" else None):
+                    return _occlusion_rounds(w, mask, omega, *start, params.camera_rounds, n_als, params.ridge,
+                                             race, role)
 
-                with ThreadPoolExecutor(len(counts)) as pool:
-                    runs = dict(zip(counts, pool.map(rounds, counts, ("lead", "follow"))))
-                rot, x, basis, rmse, _ = min((runs[n] for n in order), key=lambda run: run[3])
-                rounds_run = {str(n): runs[n][4] for n in order}
-    shapes_obj = np.einsum("fk,kjp->fpj", omega @ x, basis)  # (F, P, 3) object frame
-    points = np.einsum("fij,fpj->fpi", rot, shapes_obj)
-    points -= points.mean(axis=1, keepdims=True)
-    return Reconstruction(points_3d=points * unit, rotations=rot, method="csf2", iterations=it, converged=converged,
-                          info={"K": k, "d": d, "rmse": float(rmse) * unit, "camera_residual": cam_residual,
-                                "camera_columns": cam_cols, "shape_start": shape_start, "completion": completion,
-                                "rounds": rounds_run})
+            with ThreadPoolExecutor(len(counts)) as pool:
+                runs = dict(zip(counts, pool.map(rounds, counts, ("lead", "follow"))))
+            rot, x, basis, rmse, _ = min((runs[n] for n in order), key=lambda run: run[3])
+            rounds_run = {str(n): runs[n][4] for n in order}
+    return rot, (x, basis, rmse), (it, converged), shape_start, rounds_run
 
 
 #: Camera rounds that rank CSF2's two deterministic shape starts when points are missing (module docstring).
@@ -374,12 +415,10 @@ def _refine_masked(wc: np.ndarray, mask: np.ndarray, rows: np.ndarray, omega: np
 
 class _RoundRace:
     """What the two runs of occlusion rounds share: the leading run (fewer X/S iterations per round, so faster)
-    posts its RMSE every 10 rounds and never waits; the following run, at rounds ``start``, ``start + 10``, ...,
-    waits for the leader's post of the same round (or its end) and stops when its own RMSE is more than
-    ``margin`` above it. Only the follower reads the other's numbers, so the result does not depend on thread
-    timing. (Drink with 20% missing: the 20-iteration run is 2.9% behind at round 30, 1.8% at 100 and still .9%
-    behind at round 200; it stops at round 30 instead of taking the whole run's time. On pickup, yoga, stretch,
-    dance, the shark and seven synthetic sequences the slower run is never 2% behind: the same result.)"""
+    posts its RMSE every 10 rounds and never waits; the following run, at rounds ``start``, ``start + 10``, ..., waits
+    for the leader's post of the same round (or its end) and stops when its own RMSE is more than ``margin`` above
+    it. Only the follower reads the other's numbers, so the result does not depend on thread timing.
+    """
 
     def __init__(self, margin: float, start: int) -> None:
         self.margin, self.start = margin, start

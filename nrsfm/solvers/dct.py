@@ -19,8 +19,8 @@ def dct_basis(n_frames: int, d: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)
 def _dct_cosines(n_frames: int, d: int) -> np.ndarray:
-    """`(2d - 1, F)` ``cos(pi m (2f + 1) / 2F)`` for m < 2d - 1 (read-only; cached: the missing-data rounds call
-    :func:`dct_weighted_gram` thousands of times on one sequence)."""
+    """`(2d - 1, F)` ``cos(pi m (2f + 1) / 2F)`` for m < 2d - 1 (read-only; cached: CSF2's missing-data
+    rounds need them thousands of times on one sequence)."""
     freq = np.arange(2 * d - 1)
     cos = np.cos(np.pi * (2 * np.arange(n_frames)[None] + 1) * freq[:, None] / (2 * n_frames))
     cos.flags.writeable = False
@@ -30,7 +30,8 @@ def _dct_cosines(n_frames: int, d: int) -> np.ndarray:
 def dct_weighted_gram(weights: np.ndarray, d: int) -> np.ndarray:
     """``G[a, b] = sum_f omega_fa omega_fb weights_f`` `(d, d, ...)` for the DCT basis of :func:`dct_basis` and
     `(F, ...)` weights, from ``2d - 1`` cosine sums (``cos x cos y = (cos(x + y) + cos(x - y)) / 2``): ``O(F d)``
-    products instead of ``O(F d^2)`` (on drink, K = 10: 24 Mflop against 2.7 Gflop)."""
+    products instead of ``O(F d^2)``.
+    """
     sums, scale = _dct_cosine_sums(weights, d)
     sums = sums.reshape((2 * d - 1,) + weights.shape[1:])
     a = np.arange(d)
@@ -48,11 +49,11 @@ def _dct_cosine_sums(weights: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarra
 
 
 def dct_weighted_gram_blocks(weights: np.ndarray, d: int) -> np.ndarray:
-    """:func:`dct_weighted_gram` of `(F, K, K)` weights laid out as the `(d K, d K)` matrix with entry
-    ``[(a, k), (b, l)]`` = ``G[a, b, k, l]``: the X-step's normal matrix. The ``a + b`` (Hankel) and ``|a - b|``
-    (Toeplitz) terms are strided views of the cosine sums, added straight into that layout (the same values to
-    the bit as :func:`dct_weighted_gram`; on drink, K = 10, one thread, back to back: 4.7-5.0 ms against
-    8.6-9.8 ms with an index gather)."""
+    """`dct_weighted_gram` of `(F, K, K)` weights laid out as the `(d K, d K)` matrix with entry
+    ``[(a, k), (b, l)]`` = ``G[a, b, k, l]``: CSF2's X-step normal matrix. The ``a + b`` (Hankel) and ``|a - b|``
+    (Toeplitz) terms are strided views of the cosine sums, added straight into that layout (the same values to the
+    bit as :func:`dct_weighted_gram`).
+    """
     k = weights.shape[1]
     sums, scale = _dct_cosine_sums(weights, d)
     sums = sums.reshape(2 * d - 1, k, k)

@@ -1,85 +1,47 @@
 """EM-PND: NRSfM with a Procrustean normal distribution fitted by EM (Lee, Cho & Oh, CVPR 2013; the PND2 form
 of TPAMI 2016, ``NRSfM_PND2.m``).
 
-Model (orthographic). Shapes live in translation-free coordinates: ``X_f``
-`(3, P-1)` is the camera-frame shape times an orthonormal basis ``H``
-`(P, P-1)` of the complement of the all-ones vector. Each shape, rotated and
-scaled onto the mean shape ``M`` `(3, P-1)` (``||M|| = 1``) by its own
-Procrustes alignment,
+Model (orthographic). Shapes live in translation-free coordinates: ``X_f`` `(3, P-1)` is the camera-frame shape
+times an orthonormal basis ``H`` `(P, P-1)` of the complement of the all-ones vector. Each shape, rotated and
+scaled onto the mean shape ``M`` `(3, P-1)` (``||M|| = 1``) by its own Procrustes alignment,
 
     Y_f = s_f R_f X_f,   (R_f, s_f) = argmax tr(R X_f M^T),  <Y_f, M> = 1,
 
-follows a Gaussian that is *degenerate along the alignment*: zero mean and
-precision ``Lambda = Q C^-1 Q^T`` where ``Q`` `(3(P-1), 3(P-1) - 4)` spans the
-complement of ``M`` and its three infinitesimal rotations ``e_k x M`` (the
-directions the alignment removes) and ``C`` is a *full* covariance: no number
-of bases K. The observed rows are ``x, y`` of ``X_f`` (visible points only;
-each frame's translation is eliminated with the visible points' centroid) plus
-Gaussian noise ``sigma^2``.
+follows a Gaussian that is *degenerate along the alignment*: zero mean and precision ``Lambda = Q C^-1 Q^T``
+where ``Q`` `(3(P-1), 3(P-1) - 4)` spans the complement of ``M`` and its three infinitesimal rotations
+``e_k x M`` (the directions the alignment removes) and ``C`` is a *full* covariance: no number of bases K. The
+observed rows are ``x, y`` of ``X_f`` (visible points only; each frame's translation is eliminated with the
+visible points' centroid) plus Gaussian noise ``sigma^2``.
 
 EM (per iteration):
 
-* E-step: each frame's posterior over all of ``X_f`` is Gaussian with precision
-  ``K_f^T Lambda K_f + W_f / sigma^2`` (``K_f = s_f R_f kron I``, ``W_f`` the
-  projector onto the observed rows); mean and covariance by one batched
-  Cholesky factorisation.
-* ``sigma^2`` in closed form; like the authors we let it fall by at most a
-  factor ``var_drop`` (2) per iteration.
-* M-step: ``C = Q^T A Q`` with ``A = mean_f K_f E[X_f X_f^T] K_f^T``, and the
-  profiled cost ``J(M) = 1/2 log det(Q^T A Q) - (3(P-1) - 4) mean_f log s_f``
-  (``R_f, s_f, Q, A`` all depend on ``M``) gets one line-searched gradient step
-  on the unit sphere. ``log det(Q^T A Q) = log det(Pi A Pi + N N^T)`` with ``N``
-  the four constrained directions, so no basis of ``Q`` is differentiated; the
-  gradient is torch autograd of that closed form (the authors derive it by
-  hand), the step an Armijo backtracking search (theirs: strong Wolfe).
-* Stop when the per-dimension cost falls by less than ``tol`` (the authors'
-  ``1e-2``) or after ``max_iter`` iterations (their 1000).
+* E-step: each frame's posterior over all of ``X_f`` is Gaussian with precision ``K_f^T Lambda K_f + W_f /
+  sigma^2`` (``K_f = s_f R_f kron I``, ``W_f`` the projector onto the observed rows); mean and covariance by one
+  batched Cholesky factorisation (:class:`DensePosterior`), or by a Woodbury form when every point is visible
+  (:class:`CompletePosterior`, the same result).
+* ``sigma^2`` in closed form; like the authors we let it fall by at most a factor ``var_drop`` per iteration.
+* M-step: ``C = Q^T A Q`` with ``A = mean_f K_f E[X_f X_f^T] K_f^T``, and the profiled cost ``J(M) = 1/2 log
+  det(Q^T A Q) - (3(P-1) - 4) mean_f log s_f`` (``R_f, s_f, Q, A`` all depend on ``M``) gets one line-searched
+  gradient step on the unit sphere. ``log det(Q^T A Q) = log det(Pi A Pi + N N^T)`` with ``N`` the four
+  constrained directions, so no basis of ``Q`` is differentiated; the gradient is torch autograd of that closed
+  form (the authors derive it by hand), the step an Armijo backtracking search (theirs: strong Wolfe).
+* Stop when the per-dimension cost falls by less than ``tol`` (the authors' ``1e-2``) or after ``max_iter``
+  iterations (their 1000).
 
 Where we differ from the authors' code, and why:
 
 * Start (``init="auto"``). With complete tracks, the authors' own start
-  (:func:`nrsfm.solvers.rectify.factorisation_start`: rotations by rank-3
-  rectification of a rank-3K factorisation, reflections made consistent,
-  trace-minimising depths), aligned by generalised Procrustes. It reproduces
-  the authors' numbers on all six CMU files (dance .1570 against .1567, yoga
-  .0170 against .0169), where CSF2's start gave dance .1873. It fails on
-  noise-free sequences whose camera turns steadily about one axis (1000 x 17,
-  K = 3: e3D .104 after EM against .012 from CSF2's start; 3000 x 17: .48
-  against .0074). Not because of its rotations: polished to machine precision
-  by Levenberg-Marquardt they are exact, and EM still ends at .48 from the
-  start's depths. ``probe_iter > 0`` runs both starts and keeps the lower PND
-  cost. After full runs the cost picks the better start on those sequences and
-  on dance; after 20 iterations it picked CSF2 (auto K) on dance (e3D .2204),
-  where the two costs differ by .025 (.12-.19 on yoga, pickup and stretch)
-  against 1.1-2.5 on the failing synthetic ones. So the default (``probe_iter
-  = -1``) probes for 20 iterations only on noise-free tracks
-  (:func:`exactly_low_rank`: never on the CMU mocap files, but on the shark,
-  where it keeps the factorisation start). With missing points the start
-  is CSF2's occlusion-aware reconstruction (the authors instead fill the gaps
-  by nuclear-norm completion first), cut short: ``init_rounds`` (50) camera
-  rounds of 5 X/S iterations, where CSF2 alone runs up to 200 rounds twice.
-  With 20% of entries missing EM ends within .0004 of the e3D it reaches from
-  CSF2's full reconstruction (drink .00556 both, pickup .0191 both, yoga .0166
-  against .0167, stretch .0217 both, dance .1845 against .1961), and drink
-  takes 51 s instead of 65 (start 13 s against 30).
-  ``init="rigid"`` (the rank-3 factorisation) is the fallback for sequences
-  too small for CSF2.
-* ``sigma^2`` starts at the authors' 1e-4 (in units where a shape has norm
-  ~1). ``var_init = 0`` starts it at the start's own reprojection error
-  instead: fewer iterations (drink 112 against 132, same e3D .0048) but a
-  worse optimum on yoga (.0195 against .0176), stretch (.0230 against .0218)
-  and the shark (.0525 against .0335).
-* The alignment uses proper rotations only (``det R = +1``); the authors'
-  ``svd``-based update may return a reflection.
+  (:func:`nrsfm.solvers.rectify.factorisation_start`), aligned by generalised Procrustes. It can fail on
+  noise-free sequences whose camera turns steadily about one axis, so on noise-free tracks
+  (:func:`exactly_low_rank`) EM first runs ``PROBE_ITER_EXACT`` iterations from it and from CSF2's
+  reconstruction and goes on from the lower PND cost. With missing points the start is CSF2's occlusion-aware
+  reconstruction cut to ``init_rounds`` camera rounds (the authors instead fill the gaps by nuclear-norm
+  completion first). ``init="rigid"`` (the rank-3 factorisation) is the fallback for sequences too small for CSF2.
+* The alignment uses proper rotations only (``det R = +1``); the authors' ``svd``-based update may return a
+  reflection.
 
-Cost: with missing points ``O(F (3P)^3)`` per iteration (one Cholesky
-factorisation and inverse per frame, :class:`DensePosterior`); with complete
-tracks ``O(F P^3)`` (:class:`CompletePosterior`). All of it is batched tensor
-algebra in float64, on a GPU when torch sees one (``device``). Drink (1102 x
-41, 132 iterations, the start included): 25.3 s on two cores, 41.5 s on one
-(session 33; with 20% missing, 157 iterations: 77 s on two cores, 17 s of it
-the CSF2 start). A drink-sized synthetic sequence's EM: 24.5 s on two cores,
-1.9 s on an H100 (``benchmarks.studies.speed_empnd``; ``benchmarks/RESULTS.md``).
+Cost: ``O(F (3P)^3)`` per iteration with missing points, ``O(F P^3)`` with complete tracks. All of it is batched
+tensor algebra in float64, on a GPU when torch sees one (``device``).
 """
 
 from __future__ import annotations
@@ -113,34 +75,29 @@ class EMPNDParams:
 
     Attributes:
         max_iter: EM iterations (authors: 1000).
-        tol: stop when the cost per shape dimension falls by less than this in
-            one iteration (authors: 1e-2).
-        var_init: starting noise variance in normalised units (shapes of norm
-            ~1; the authors' 1e-4); 0 takes the start's reprojection error.
-        var_drop: the noise variance falls by at most this factor per
-            iteration (authors: 2).
+        tol: stop when the cost per shape dimension falls by less than this in one iteration (authors: 1e-2).
+        var_init: starting noise variance in normalised units (shapes of norm ~1; the authors' 1e-4); 0 takes the
+            start's reprojection error.
+        var_drop: the noise variance falls by at most this factor per iteration (authors: 2).
         c_init: ridge on the starting shape covariance (authors: 1e-4).
-        init: the start. ``"factorisation"``: the authors' own (rank-3 rectification of a
-            rank-3K factorisation, trace-minimising depths; :mod:`nrsfm.solvers.rectify`),
-            complete tracks only. ``"csf2"``: CSF2's reconstruction (its occlusion-aware form
-            when points are missing). ``"rigid"``: the rank-3 factorisation. ``"spm"``, ``"pr"``: that
-            solver's reconstruction with its defaults (``"spm"``: complete tracks only). ``"auto"`` (default):
-            with every point visible, the factorisation start (and, with ``probe_iter > 0``, also
-            CSF2's: EM runs ``probe_iter`` iterations from each and goes on from the one with the
-            lower PND cost); with missing points, CSF2.
+        init: the start. ``"factorisation"``: the authors' own (rank-3 rectification of a rank-3K factorisation,
+            trace-minimising depths; :mod:`nrsfm.solvers.rectify`), complete tracks only. ``"csf2"``: CSF2's
+            reconstruction (its occlusion-aware form when points are missing). ``"rigid"``: the rank-3
+            factorisation. ``"spm"``, ``"pr"``: that solver's reconstruction with its defaults (``"spm"``: complete
+            tracks only). ``"auto"`` (default): with every point visible, the factorisation start (and, with
+            ``probe_iter > 0``, also CSF2's: EM runs ``probe_iter`` iterations from each and goes on from the one
+            with the lower PND cost); with missing points, CSF2.
         init_K: CSF2's K for the ``"csf2"`` start (0: CSF2's automatic rule).
-        init_rounds: camera rounds of that start when points are missing, one run of 5 X/S iterations per
-            round (CSF2's own defaults: 200 rounds, two runs of 20 and 5). EM ends at nearly the same e3D from
-            a start this rough (module docstring), and drink's start takes 13 s instead of 30.
-        probe_iter: iterations of each start before ``"auto"`` picks one (0: factorisation only;
-            ``max_iter``: both run to convergence, the lower final cost wins, at twice the time).
-            -1 (default): 20 when the tracks are noise-free (:func:`exactly_low_rank`), else 0.
-        fast: use :class:`CompletePosterior` when every point is visible
-            (same result; drink 43 s against 61 s on 2 cores); False forces
+        init_rounds: camera rounds of that start when points are missing, one run of 5 X/S iterations per round
+            (CSF2's own defaults: 200 rounds, two runs of 20 and 5): EM needs only a rough start.
+        probe_iter: iterations of each start before ``"auto"`` picks one (0: factorisation only; ``max_iter``: both
+            run to convergence, the lower final cost wins, at twice the time). -1 (default): ``PROBE_ITER_EXACT``
+            when the tracks are noise-free (:func:`exactly_low_rank`), else 0.
+        fast: use :class:`CompletePosterior` when every point is visible (the same result, faster); False forces
             :class:`DensePosterior`.
-        device: where EM's tensor algebra runs (:func:`nrsfm.device.pick_device`): ``"auto"``
-            (default) a CUDA GPU when torch sees one, else the CPU; ``"cpu"``, ``"cuda"``,
-            ``"cuda:N"``. The start (CSF2, the factorisation) runs on the CPU either way.
+        device: where EM's tensor algebra runs (:func:`nrsfm.device.pick_device`): ``"auto"`` (default) a CUDA GPU
+            when torch sees one, else the CPU; ``"cpu"``, ``"cuda"``, ``"cuda:N"``. The start (CSF2, the
+            factorisation) runs on the CPU either way.
     """
 
     max_iter: int = 1000
@@ -263,18 +220,13 @@ class DensePosterior:
 
 
 class CompletePosterior:
-    """E-step when every point is visible in every frame (drink: 43 s against 61 s with the dense one).
+    """E-step when every point is visible in every frame; the same result as :class:`DensePosterior`.
 
-    In frame f's aligned coordinates the posterior precision is
-    ``Lambda + c_f (I - u_f u_f^T) kron I_q`` (``c_f = 1 / (s_f^2 var)``, ``u_f``
-    the viewing direction), i.e. ``(Lambda + c_f I)`` minus a rank-q term:
-    Woodbury in the eigenbasis of ``Lambda`` leaves one `(q, q)` factorisation
-    per frame; the second moments are kept as ``V diag(g_f) V^T`` (one weight
-    vector per frame) plus a rank-(q+1) part stored as `(3, 3)` blocks, so
-    :meth:`moment` is a few matrix products, with `O(q * 3q)` memory beyond the
-    blocks (the earlier form precomputed a `(27q, q^2)` table: 1.7 GB at 200
-    points, an 18.8 GB peak at 300, and 11 s an iteration on 30 x 300 against
-    1.5 s now). Same results as :class:`DensePosterior` (tested to 1e-9).
+    In frame f's aligned coordinates the posterior precision is ``Lambda + c_f (I - u_f u_f^T) kron I_q``
+    (``c_f = 1 / (s_f^2 var)``, ``u_f`` the viewing direction), i.e. ``(Lambda + c_f I)`` minus a rank-q term:
+    Woodbury in the eigenbasis of ``Lambda`` leaves one `(q, q)` factorisation per frame; the second moments are kept
+    as ``V diag(g_f) V^T`` (one weight vector per frame) plus a rank-(q+1) part stored as `(3, 3)` blocks, so
+    :meth:`moment` is a few matrix products, with `O(q * 3q)` memory beyond the blocks.
     """
 
     def __init__(self, lam: torch.Tensor, sr: torch.Tensor, s: torch.Tensor, data: torch.Tensor, var: float) -> None:
@@ -367,102 +319,7 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     """EM-PND2 on an orthographic sequence (missing points allowed). See the module docstring."""
     vis = require_visible_points(seq, "empnd")
     n, p = seq.n_frames, seq.n_points
-    q = p - 1
-    dim = 3 * q
-    cdim = dim - 4
-    basis = centring_basis(p)  # (P, q)
-    visf = vis.astype(np.float64)
-    count = visf.sum(axis=1)
-    w = seq.points_2d
-    wc = (w - (w * visf[..., None]).sum(axis=1, keepdims=True) / count[:, None, None]) * visf[..., None]
-    unit = float(np.sqrt((wc**2).sum() / (2 * visf.sum()) * 3 * p))  # a shape's norm ~ 1 in these units
-    if unit <= 0:
-        raise SolverError("empnd: every visible track is constant (no 2D motion to reconstruct)")
-    data = np.zeros((n, 3, q))
-    data[:, :2] = np.einsum("pa,fpj->fja", basis, wc) / unit
-    # projector onto each frame's observed (centred) rows, per coordinate: H^T (D_v - v v^T / |v|) H   (F, q, q)
-    hv = visf @ basis  # (F, q)
-    obs = (basis.T * visf[:, None, :]) @ basis - hv[:, :, None] * hv[:, None, :] / count[:, None, None]
-    n_obs = 2.0 * (count - 1).sum()
-    complete = bool(vis.all()) and params.fast
-
-    device = pick_device(params.device)
-    d_t = torch.from_numpy(data).to(device)
-    obs_t = torch.from_numpy(obs).to(device)
-
-    def begin(start: np.ndarray) -> dict:
-        """EM state from `(F, P, 3)` camera-frame starting shapes (generalised Procrustes, sample covariance)."""
-        x0 = np.einsum("pa,fpj->fja", basis, start - start.mean(axis=1, keepdims=True)) / unit
-        mu = torch.from_numpy(x0).to(device)
-        mean = (mu / mu.reshape(n, -1).norm(dim=1)[:, None, None]).mean(dim=0)
-        mean = mean / mean.norm()
-        for _ in range(200):
-            sr, _ = align(mu, mean)
-            new = (sr @ mu).mean(dim=0)
-            new = new / new.norm()
-            done = float((new - mean).norm()) < 1e-12
-            mean = new
-            if done:
-                break
-        sr, s = align(mu, mean)
-        y = (sr @ mu).reshape(n, dim)
-        nb = constrained_directions(mean)
-        full, _ = torch.linalg.qr(torch.cat([nb, torch.eye(dim, dtype=_DT, device=device)], dim=1))
-        qb = full[:, 4:dim]  # (dim, cdim)
-        cp = params.c_init * torch.eye(cdim, dtype=_DT, device=device) + qb.T @ (y.T @ y / n) @ qb
-        fit = torch.zeros_like(mu)
-        fit[:, :2] = mu[:, :2] @ obs_t
-        var = params.var_init or max(float(((d_t - fit) ** 2).sum()) / n_obs, 1e-14)
-        return dict(mu=mu, mean=mean, sr=sr, s=s, lam=qb @ torch.linalg.solve(cp, qb.T), var=var, step=1e-4,
-                    cost=np.inf, history=[], it=0, converged=False)
-
-    def iterate(st: dict, n_iter: int) -> dict:
-        """Up to ``n_iter`` EM iterations from state ``st`` (updated and returned)."""
-        mean, sr, s, lam, var, step, cost = st["mean"], st["sr"], st["s"], st["lam"], st["var"], st["step"], st["cost"]
-        fit = torch.zeros_like(st["mu"])
-        mu = st["mu"]
-        for _ in range(n_iter):
-            st["it"] += 1
-            # ---- E-step
-            post = CompletePosterior(lam, sr, s, d_t, var) if complete else DensePosterior(lam, sr, d_t, obs_t, var)
-            mu = post.mu
-            # ---- noise variance
-            fit[:, :2] = mu[:, :2] @ obs_t
-            new_var = (float(((d_t - fit) ** 2).sum()) + post.trace) / n_obs
-            var = max(min(params.var_drop * new_var, max(var, new_var)), 1e-14)
-            # ---- M-step: one line-searched gradient step on the mean shape
-            m_var = mean.clone().requires_grad_(True)
-            j0, aux = pnd_cost(m_var, mu, post.moment)
-            (grad,) = torch.autograd.grad(j0, m_var)
-            grad = grad - (grad * mean).sum() * mean  # J is scale invariant: stay on the sphere
-            g2 = float((grad * grad).sum())
-            j0 = float(j0.detach())
-            aux = tuple(a.detach() for a in aux)
-            for _ in range(40):
-                trial = mean - step * grad
-                trial = trial / trial.norm()
-                try:
-                    with torch.no_grad():
-                        jt, aux_t = pnd_cost(trial, mu, post.moment)
-                except SolverError:  # a trial where the covariance is singular: a failed step
-                    step *= 0.5
-                    continue
-                if float(jt) <= j0 - 1e-4 * step * g2:
-                    mean, j0, aux = trial, float(jt), aux_t
-                    step *= 2.0
-                    break
-                step *= 0.5
-            sr, s, chol_b, nb = aux
-            lam = _precision_from(chol_b, nb)
-            previous, cost = cost, (2.0 * j0 + np.log(var) * n_obs / n) / cdim
-            st["history"].append(cost)
-            report("empnd", "EM", st["it"], params.max_iter, cost=cost)
-            if previous - cost < params.tol:
-                st["converged"] = True
-                break
-        st.update(mu=mu, mean=mean, sr=sr, s=s, lam=lam, var=var, step=step, cost=cost)
-        return st
-
+    em = _EM(seq, vis, params)
     start_s = 0.0
 
     def timed_start(kind: str) -> np.ndarray:
@@ -480,29 +337,141 @@ def solve_empnd(seq: Sequence, params: EMPNDParams) -> Reconstruction:
     probe_iter = min(probe_iter, params.max_iter)
     if params.init == "auto" and kind == "factorisation" and probe_iter > 0 and fits_csf2(n, p):
         # both starts for probe_iter iterations; the lower PND cost goes on
-        probes = [iterate(begin(timed_start(k)), probe_iter) for k in ("factorisation", "csf2")]
+        probes = [em.iterate(em.begin(timed_start(k)), probe_iter) for k in ("factorisation", "csf2")]
         best = min(range(2), key=lambda i: probes[i]["cost"])
         kind = ("factorisation", "csf2")[best]
         st = probes[best]
         st["probe_costs"] = [p["cost"] for p in probes]
     else:
-        st = begin(timed_start(kind))
+        st = em.begin(timed_start(kind))
     if not st["converged"]:
-        st = iterate(st, params.max_iter - st["it"])
+        st = em.iterate(st, params.max_iter - st["it"])
     mu, sr, s, var, cost, it = st["mu"], st["sr"], st["s"], st["var"], st["cost"], st["it"]
     converged, history = st["converged"], st["history"]
 
-    points = np.einsum("pa,fja->fpj", basis, mu.cpu().numpy()) * unit  # (F, P, 3) camera frame
+    points = np.einsum("pa,fja->fpj", em.basis, mu.cpu().numpy()) * em.unit  # (F, P, 3) camera frame
     rot = (sr / s[:, None, None]).cpu().numpy().transpose(0, 2, 1)  # camera <- aligned object frame
     return Reconstruction(points_3d=points, rotations=rot, method="empnd", iterations=it, converged=converged,
-                          info={"noise_std": float(np.sqrt(var)) * unit, "cost": cost, "init": kind,
+                          info={"noise_std": float(np.sqrt(var)) * em.unit, "cost": cost, "init": kind,
                                 "cost_history": history, "probe_costs": st.get("probe_costs"),
-                                "device": str(device), "start_s": start_s})
+                                "device": str(em.device), "start_s": start_s})
 
 
-#: Iterations of each start on noise-free tracks (``probe_iter = -1``). After 20 iterations the PND cost of
-#: CSF2's start is lower by 1.13 (1000 x 17) and 2.47 (3000 x 17) on the smooth-camera synthetic sequences, where
-#: the factorisation start fails (e3D .11 and .48 after EM); on the CMU files the two costs differ by at most .19.
+class _EM:
+    """The data of one EM-PND run in normalised, translation-free coordinates, and its two steps:
+    :meth:`begin` (a state from starting shapes) and :meth:`iterate` (EM iterations on a state)."""
+
+    def __init__(self, seq: Sequence, vis: np.ndarray, params: EMPNDParams) -> None:
+        n, p = seq.n_frames, seq.n_points
+        q = p - 1
+        self.params, self.n, self.dim, self.cdim = params, n, 3 * q, 3 * q - 4
+        self.basis = basis = centring_basis(p)  # (P, q)
+        visf = vis.astype(np.float64)
+        count = visf.sum(axis=1)
+        w = seq.points_2d
+        wc = (w - (w * visf[..., None]).sum(axis=1, keepdims=True) / count[:, None, None]) * visf[..., None]
+        self.unit = float(np.sqrt((wc**2).sum() / (2 * visf.sum()) * 3 * p))  # a shape's norm ~ 1 in these units
+        if self.unit <= 0:
+            raise SolverError("empnd: every visible track is constant (no 2D motion to reconstruct)")
+        data = np.zeros((n, 3, q))
+        data[:, :2] = np.einsum("pa,fpj->fja", basis, wc) / self.unit
+        # projector onto each frame's observed (centred) rows, per coordinate: H^T (D_v - v v^T / |v|) H  (F, q, q)
+        hv = visf @ basis  # (F, q)
+        obs = (basis.T * visf[:, None, :]) @ basis - hv[:, :, None] * hv[:, None, :] / count[:, None, None]
+        self.n_obs = 2.0 * (count - 1).sum()
+        self.complete = bool(vis.all()) and params.fast
+        self.device = pick_device(params.device)
+        self.d_t = torch.from_numpy(data).to(self.device)
+        self.obs_t = torch.from_numpy(obs).to(self.device)
+
+    def begin(self, start: np.ndarray) -> dict:
+        """EM state from `(F, P, 3)` camera-frame starting shapes (generalised Procrustes, sample covariance)."""
+        n, dim, cdim, device = self.n, self.dim, self.cdim, self.device
+        x0 = np.einsum("pa,fpj->fja", self.basis, start - start.mean(axis=1, keepdims=True)) / self.unit
+        mu = torch.from_numpy(x0).to(device)
+        mean = (mu / mu.reshape(n, -1).norm(dim=1)[:, None, None]).mean(dim=0)
+        mean = mean / mean.norm()
+        for _ in range(200):
+            sr, _ = align(mu, mean)
+            new = (sr @ mu).mean(dim=0)
+            new = new / new.norm()
+            done = float((new - mean).norm()) < 1e-12
+            mean = new
+            if done:
+                break
+        sr, s = align(mu, mean)
+        y = (sr @ mu).reshape(n, dim)
+        nb = constrained_directions(mean)
+        full, _ = torch.linalg.qr(torch.cat([nb, torch.eye(dim, dtype=_DT, device=device)], dim=1))
+        qb = full[:, 4:dim]  # (dim, cdim)
+        cp = self.params.c_init * torch.eye(cdim, dtype=_DT, device=device) + qb.T @ (y.T @ y / n) @ qb
+        fit = torch.zeros_like(mu)
+        fit[:, :2] = mu[:, :2] @ self.obs_t
+        var = self.params.var_init or max(float(((self.d_t - fit) ** 2).sum()) / self.n_obs, 1e-14)
+        return dict(mu=mu, mean=mean, sr=sr, s=s, lam=qb @ torch.linalg.solve(cp, qb.T), var=var, step=1e-4,
+                    cost=np.inf, history=[], it=0, converged=False)
+
+    def iterate(self, st: dict, n_iter: int) -> dict:
+        """Up to ``n_iter`` EM iterations from state ``st`` (updated and returned)."""
+        params, d_t, obs_t, n_obs = self.params, self.d_t, self.obs_t, self.n_obs
+        mean, sr, s, lam, var, step, cost = st["mean"], st["sr"], st["s"], st["lam"], st["var"], st["step"], st["cost"]
+        fit = torch.zeros_like(st["mu"])
+        mu = st["mu"]
+        for _ in range(n_iter):
+            st["it"] += 1
+            # ---- E-step
+            if self.complete:
+                post = CompletePosterior(lam, sr, s, d_t, var)
+            else:
+                post = DensePosterior(lam, sr, d_t, obs_t, var)
+            mu = post.mu
+            # ---- noise variance
+            fit[:, :2] = mu[:, :2] @ obs_t
+            new_var = (float(((d_t - fit) ** 2).sum()) + post.trace) / n_obs
+            var = max(min(params.var_drop * new_var, max(var, new_var)), 1e-14)
+            # ---- M-step: one line-searched gradient step on the mean shape
+            mean, j0, aux, step = _mean_step(mean, mu, post.moment, step)
+            sr, s, chol_b, nb = aux
+            lam = _precision_from(chol_b, nb)
+            previous, cost = cost, (2.0 * j0 + np.log(var) * n_obs / self.n) / self.cdim
+            st["history"].append(cost)
+            report("empnd", "EM", st["it"], params.max_iter, cost=cost)
+            if previous - cost < params.tol:
+                st["converged"] = True
+                break
+        st.update(mu=mu, mean=mean, sr=sr, s=s, lam=lam, var=var, step=step, cost=cost)
+        return st
+
+
+def _mean_step(mean: torch.Tensor, mu: torch.Tensor, moment, step: float):
+    """The M-step: one Armijo-backtracked gradient step of the profiled PND cost on the unit sphere of mean shapes
+    `(3, q)`, from step length ``step`` (doubled after a success, halved on each failure). Returns the new mean,
+    its cost, :func:`pnd_cost`'s by-products there and the next step length."""
+    m_var = mean.clone().requires_grad_(True)
+    j0, aux = pnd_cost(m_var, mu, moment)
+    (grad,) = torch.autograd.grad(j0, m_var)
+    grad = grad - (grad * mean).sum() * mean  # J is scale invariant: stay on the sphere
+    g2 = float((grad * grad).sum())
+    j0 = float(j0.detach())
+    aux = tuple(a.detach() for a in aux)
+    for _ in range(40):
+        trial = mean - step * grad
+        trial = trial / trial.norm()
+        try:
+            with torch.no_grad():
+                jt, aux_t = pnd_cost(trial, mu, moment)
+        except SolverError:  # a trial where the covariance is singular: a failed step
+            step *= 0.5
+            continue
+        if float(jt) <= j0 - 1e-4 * step * g2:
+            mean, j0, aux = trial, float(jt), aux_t
+            step *= 2.0
+            break
+        step *= 0.5
+    return mean, j0, aux, step
+
+
+#: Iterations of each start on noise-free tracks (``probe_iter = -1``) before the lower PND cost picks one.
 PROBE_ITER_EXACT = 20
 
 

@@ -1,34 +1,24 @@
 """EM-PPCA: NRSfM with a Gaussian (probabilistic PCA) shape model fitted by EM (Torresani, Hertzmann & Bregler,
 PAMI 2008), with an optional first-order Procrustean constraint on the modes.
 
-This was the first form of our EM-PND; the full PND2 model (no K, full covariance of
-the aligned shapes) is :mod:`nrsfm.solvers.empnd`.
-
-Model (orthographic): each frame's shape is a Procrustes-aligned sample of a
-Gaussian around the mean shape, seen by a rotated camera::
+Model (orthographic): each frame's shape is a sample of a Gaussian around the mean shape, seen by a rotated
+camera::
 
     w_fp = R_f^(2) (m_p + sum_k z_fk v_kp) + t_f + noise,   z_f ~ N(0, I_K),  noise ~ N(0, s2 I)
 
-The *Procrustean* part (``procrustean=True``): the deformation modes
-``v_k`` `(3, P)` are kept orthogonal to the infinitesimal rotations
-``[e_i]_x M`` and translations of the mean shape ``M``, so rigid motion is
-explained by the cameras alone (a first-order form of the PND alignment
-constraint). Without it (the default) the model is EM-PPCA (Torresani et al.).
+The *Procrustean* option (``procrustean=True``) keeps the deformation modes ``v_k`` `(3, P)` orthogonal to the
+infinitesimal rotations ``[e_i]_x M`` and translations of the mean shape ``M``, so rigid motion is explained by
+the cameras alone (a first-order form of the PND alignment constraint; the full PND model is
+:mod:`nrsfm.solvers.empnd`). Without it (the default) the model is Torresani et al.'s.
 
-EM: the E-step gives each frame's Gaussian posterior over ``z_f`` from its
-visible entries (missing points are simply absent from the likelihood); the
-M-step updates, in closed form per point, the mean shape and modes (then
-projected as above), the noise variance and translations, and each camera's
-rows by a few majorisation steps of the quadratic expected cost on the
-Stiefel manifold (``R <- polar(B + R (L I - C))``). All of it is batched
-matrix products (14x faster than the first einsum version: 14.6 s against
-210 s for 100 iterations on drink, K = 10).
+EM: the E-step gives each frame's Gaussian posterior over ``z_f`` from its visible entries (missing points are
+simply absent from the likelihood); the M-step updates, in closed form per point, the mean shape and modes, the
+noise variance and translations, and each camera's rows by a few majorisation steps of the quadratic expected cost
+on the Stiefel manifold (``R <- polar(B + R (L I - C))``). All of it is batched matrix products.
 
-Initialisation (``init``): ``"csf2"`` (default) takes the cameras from CSF2
-and the mean and modes from a PCA of CSF2's object-frame shapes; the rigid
-rank-3 factorisation (``"rigid"``) is the fallback for tiny sequences. On
-drink the rigid cameras are ~80 degrees off and EM does not recover
-(e3D .106 against .016 from CSF2's start). K: ``DEFAULT_K`` unless given.
+Initialisation (``init``): ``"csf2"`` (default) takes the cameras from CSF2 and the mean and modes from a PCA of
+CSF2's object-frame shapes (Torresani et al. start from a rigid fit, whose cameras can be far off on real motion);
+the rigid rank-3 factorisation (``"rigid"``) is the fallback for tiny sequences. K: ``DEFAULT_K`` unless given.
 """
 
 from __future__ import annotations
@@ -48,9 +38,8 @@ from nrsfm.solvers.registry import register, require_visible_points
 from nrsfm.solvers.starts import csf2_reconstruction
 
 
-#: K when not given: the Gaussian prior on the coefficients keeps unused modes small, so a generous K is
-#: safe; 10 was the best or near-best of K in {5, 10, 15} on five of the six CMU files
-#: (camera-frame e3D; drink preferred 15). The sweep is recorded in benchmarks/RESULTS.md.
+#: K when not given: the Gaussian prior on the coefficients keeps unused modes small, so a generous K is safe
+#: (chosen on the CMU files among 5, 10 and 15).
 DEFAULT_K = 10
 
 
@@ -59,16 +48,13 @@ class EMPPCAParams:
     """Parameters of :func:`solve_emppca` (``K = 0``: automatic).
 
     Attributes:
-        max_iter: EM iterations; tol: stop when the relative change of the
-            expected reconstruction between iterations falls below it.
+        max_iter: EM iterations; tol: stop when the relative change of the expected reconstruction between
+            iterations falls below it.
         rotation_steps: majorisation steps of the camera update per iteration.
         seed: initialisation of the deformation modes.
-        init: ``"csf2"`` or ``"rigid"`` start; init_K: CSF2's K for the start
-            (0: CSF2's automatic rule).
-        procrustean: project the modes off the rotations/translations of the
-            mean after every M-step (the first-order PND constraint). Off by
-            default: on exact low-rank data the projection biases the fit
-            (e3D 9e-3 against 1.5e-4 without, on the 200 x 30, K = 3 test case).
+        init: ``"csf2"`` or ``"rigid"`` start; init_K: CSF2's K for the start (0: CSF2's automatic rule).
+        procrustean: project the modes off the rotations/translations of the mean after every M-step (the
+            first-order PND constraint). Off by default: on exact low-rank data the projection biases the fit.
     """
 
     K: int = 0
@@ -119,24 +105,7 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     fp2 = filled.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
     t = fp2.mean(axis=1)  # (F, 2)
     w = np.where(vis[..., None] > 0, w, fp2)
-    rng = np.random.default_rng(params.seed)
-    init = params.init
-    if init == "csf2" and min(2 * n_frames, n_points) < 6:
-        init = "rigid"  # CSF2 needs 3K <= min(2F, P) with K >= 2; tiny sequences start rigid (documented fallback)
-    if init == "csf2":  # cameras, mean and modes from CSF2's reconstruction (PCA of its object-frame shapes)
-        k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's automatic K
-        start = csf2_reconstruction(seq, k_init)
-        r2 = start.rotations[:, :2].copy()
-        obj = start.shapes_object.transpose(0, 2, 1)  # (F, 3, P)
-        mean = obj.mean(axis=0)
-        _, sv, vt = np.linalg.svd((obj - mean).reshape(n_frames, -1), full_matrices=False)
-        modes = (sv[:k, None] / np.sqrt(n_frames) * vt[:k]).reshape(k, 3, n_points)
-        modes += 1e-3 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal(modes.shape)  # none exactly 0
-    else:  # the rigid rank-3 factorisation
-        rigid = solve_rank3.__wrapped__(Sequence(points_2d=fp2), Rank3Params())
-        r2 = rigid.rotations[:, :2].copy()  # (F, 2, 3)
-        mean = np.einsum("fpi,fij->jp", rigid.points_3d, rigid.rotations) / n_frames  # (3, P) object frame
-        modes = 0.1 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal((k, 3, n_points))
+    init, r2, mean, modes = _start(seq, fp2, k, params)
     scale = np.sqrt((mean**2).sum() / n_points)
     if params.procrustean:
         modes = _procrustean_projection(modes, mean)
@@ -145,7 +114,6 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     prev = None
     it = 0
     converged = False
-    kk = 3 * (k + 1)
     eye_k = np.eye(k)
     vis_sum = vis.sum()
     w_fip = w.transpose(0, 2, 1)  # (F, 2, P)
@@ -160,22 +128,8 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
         ata = av @ a.transpose(0, 2, 1)  # (F, K, K)
         cov = np.linalg.inv(eye_k + ata / s2)  # (F, K, K)
         mu = (cov @ (av @ r[..., None]))[..., 0] / s2  # (F, K)
-        ezz = cov + mu[:, :, None] * mu[:, None, :]
-        # ---- M-step: mean and modes per point, theta_p = [m_p; v_1p; ...; v_Kp] (3(K+1))
-        zh = np.concatenate([np.ones((n_frames, 1)), mu], axis=1)  # (F, K+1)
-        ezh = np.empty((n_frames, k + 1, k + 1))
-        ezh[:, 0, 0] = 1.0
-        ezh[:, 0, 1:] = ezh[:, 1:, 0] = mu
-        ezh[:, 1:, 1:] = ezz
-        rtr = r2.transpose(0, 2, 1) @ r2  # (F, 3, 3)
-        kron = (ezh[:, :, None, :, None] * rtr[:, None, :, None, :]).reshape(n_frames, kk * kk)
-        lhs = (vis.T @ kron).reshape(n_points, kk, kk)  # sum_f vis_fp Ezh_f kron R_f^T R_f
-        g = r2.transpose(0, 2, 1) @ wt  # (F, 3, P)
-        rhs = (zh.T @ g.reshape(n_frames, 3 * n_points)).reshape(k + 1, 3, n_points).transpose(2, 0, 1)
-        ridge = 1e-9 * np.trace(lhs, axis1=1, axis2=2)[:, None, None] / kk * np.eye(kk)
-        theta = np.linalg.solve(lhs + ridge, rhs.reshape(n_points, kk, 1))[..., 0].reshape(n_points, k + 1, 3)
-        mean = theta[:, 0].T  # (3, P)
-        modes = theta[:, 1:].transpose(1, 2, 0)  # (K, 3, P)
+        # ---- M-step: mean and modes per point
+        mean, modes = _shape_model_step(vis, r2, wt, mu, cov)
         if params.procrustean:
             modes = _procrustean_projection(modes, mean)
         # ---- cameras: minimise tr(R C R^T) - 2 tr(R B^T) over orthonormal rows
@@ -209,3 +163,52 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     points -= points.mean(axis=1, keepdims=True)
     return Reconstruction(points_3d=points, rotations=rot, method="emppca", iterations=it, converged=converged,
                           info={"K": k, "noise_std": float(np.sqrt(s2)), "init": init})
+
+
+def _start(seq: Sequence, fp2: np.ndarray, k: int, params: EMPPCAParams):
+    """The start (module docstring, "Initialisation") for `(F, P, 2)` completed tracks ``fp2``: the start used,
+    camera rows `(F, 2, 3)`, the mean shape `(3, P)` and ``k`` modes `(K, 3, P)`, all in the object frame."""
+    n_frames, n_points = seq.n_frames, seq.n_points
+    rng = np.random.default_rng(params.seed)
+    init = params.init
+    if init == "csf2" and min(2 * n_frames, n_points) < 6:
+        init = "rigid"  # CSF2 needs 3K <= min(2F, P) with K >= 2; tiny sequences start rigid (documented fallback)
+    if init == "csf2":  # cameras, mean and modes from CSF2's reconstruction (PCA of its object-frame shapes)
+        k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's automatic K
+        start = csf2_reconstruction(seq, k_init)
+        r2 = start.rotations[:, :2].copy()
+        obj = start.shapes_object.transpose(0, 2, 1)  # (F, 3, P)
+        mean = obj.mean(axis=0)
+        _, sv, vt = np.linalg.svd((obj - mean).reshape(n_frames, -1), full_matrices=False)
+        modes = (sv[:k, None] / np.sqrt(n_frames) * vt[:k]).reshape(k, 3, n_points)
+        modes += 1e-3 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal(modes.shape)  # none exactly 0
+    else:  # the rigid rank-3 factorisation
+        rigid = solve_rank3.__wrapped__(Sequence(points_2d=fp2), Rank3Params())
+        r2 = rigid.rotations[:, :2].copy()  # (F, 2, 3)
+        mean = np.einsum("fpi,fij->jp", rigid.points_3d, rigid.rotations) / n_frames  # (3, P) object frame
+        modes = 0.1 * np.sqrt((mean**2).sum() / n_points) * rng.standard_normal((k, 3, n_points))
+    return init, r2, mean, modes
+
+
+def _shape_model_step(vis: np.ndarray, r2: np.ndarray, wt: np.ndarray, mu: np.ndarray, cov: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The M-step of the mean shape and the modes: per point p, ``theta_p = [m_p; v_1p; ...; v_Kp]`` `(3(K+1))` by
+    least squares on the expected statistics. ``vis`` `(F, P)`, camera rows ``r2`` `(F, 2, 3)`, centred visible
+    observations ``wt`` `(F, 2, P)`, posterior means ``mu`` `(F, K)` and covariances ``cov`` `(F, K, K)`.
+    Returns the mean `(3, P)` and the modes `(K, 3, P)`."""
+    n_frames, k = mu.shape
+    n_points = vis.shape[1]
+    kk = 3 * (k + 1)
+    zh = np.concatenate([np.ones((n_frames, 1)), mu], axis=1)  # (F, K+1)
+    ezh = np.empty((n_frames, k + 1, k + 1))
+    ezh[:, 0, 0] = 1.0
+    ezh[:, 0, 1:] = ezh[:, 1:, 0] = mu
+    ezh[:, 1:, 1:] = cov + mu[:, :, None] * mu[:, None, :]  # E[z z^T]
+    rtr = r2.transpose(0, 2, 1) @ r2  # (F, 3, 3)
+    kron = (ezh[:, :, None, :, None] * rtr[:, None, :, None, :]).reshape(n_frames, kk * kk)
+    lhs = (vis.T @ kron).reshape(n_points, kk, kk)  # sum_f vis_fp Ezh_f kron R_f^T R_f
+    g = r2.transpose(0, 2, 1) @ wt  # (F, 3, P)
+    rhs = (zh.T @ g.reshape(n_frames, 3 * n_points)).reshape(k + 1, 3, n_points).transpose(2, 0, 1)
+    ridge = 1e-9 * np.trace(lhs, axis1=1, axis2=2)[:, None, None] / kk * np.eye(kk)
+    theta = np.linalg.solve(lhs + ridge, rhs.reshape(n_points, kk, 1))[..., 0].reshape(n_points, k + 1, 3)
+    return theta[:, 0].T, theta[:, 1:].transpose(1, 2, 0)

@@ -1,62 +1,37 @@
 """PR: per-sequence Procrustean regression (Park, Lee & Kwak, IEEE TIP 2018).
 
-Model: the camera-frame shapes ``X_f = [x_f; y_f; z_f]`` `(3, P)` keep the
-observed image coordinates of visible points (orthographic camera) and have
-free depths ``z_f`` (and free x, y for missing points). The depths minimise
-a low-rank regulariser of the Procrustes-aligned shapes,
+Model: the camera-frame shapes ``X_f = [x_f; y_f; z_f]`` `(3, P)` keep the observed image coordinates of visible
+points (orthographic camera) and have free depths ``z_f`` (and free x, y for missing points). The depths minimise a
+low-rank regulariser of the Procrustes-aligned shapes,
 
     min_z  g(Z~),   Z_f = R_f X_f T,  R = GPA alignment to the mean aligned shape.
 
-The gradient comes from the shared analytic alignment gradient
-(:func:`nrsfm.procrustes.align_vjp`; an exact O(F P^2) Woodbury solve for long
-sequences), minimised by L-BFGS; each evaluation warm-starts the alignment
-from the previous rotations. The data term of the PRN loss becomes a hard
-constraint here because per-sequence NRSfM inputs are exact projections.
+The gradient comes from the shared analytic alignment gradient (:func:`nrsfm.procrustes.align_vjp`; an exact
+O(F P^2) Woodbury solve for long sequences), minimised by L-BFGS; each evaluation warm-starts the alignment from
+the previous rotations. The data term of the PRN loss becomes a hard constraint here because per-sequence NRSfM
+inputs are exact projections.
 
 Two regularisers (``regulariser``), the two the PRN paper names (Sec. 3.3):
 
-- ``"logdet"`` (default): ``sum_k log sqrt(s_k^2 + delta^2)`` of the singular
-  values ``s_k`` of the aligned shapes minus their mean shape (``centre``),
-  with ``delta`` = ``delta_rel`` times the largest singular value of the
-  starting shapes. The nuclear norm pays for the size of every singular
-  value, so its minimiser flattens the shapes: started from the ground truth
-  of yoga it moves to e3D .0955 (.057 with the mean shape removed), while the
-  log-determinant stays at .0192. The log-determinant is not convex, so the
-  start matters: from the rigid factorisation yoga ends at .79, from CSF2's
-  reconstruction (``init="csf2"``, the default) at .0192; with
-  ``delta_rel`` = 1e-3 CSF2's automatic K and the reference K (e3D .028
-  against .017 on drink, .056 against .026 on pickup, .30 against .27 on
-  dance) end in the same minimum on all six CMU files, with 3e-4 they do
-  not (``benchmarks/RESULTS.md``).
-- ``"nuclear"``: the paper's nuclear norm, smoothed as
-  ``sum_k sqrt(s_k^2 + e^2)`` with ``e`` decreased from ``smoothing_start`` to
-  ``smoothing_end`` (times the largest singular value) over ``stages``
-  continuation stages. ``regulariser=nuclear centre=false init=rigid`` is
-  the TIP paper's formulation as we first implemented it (yoga .58, drink
-  .028).
+- ``"logdet"`` (default): ``sum_k log sqrt(s_k^2 + delta^2)`` of the singular values ``s_k`` of the aligned shapes
+  minus their mean shape (``centre``), with ``delta`` = ``delta_rel`` times the largest singular value of the
+  starting shapes. The nuclear norm pays for the size of every singular value, so its minimiser flattens the
+  shapes; the log-determinant does not. It is not convex, so the start matters: CSF2's reconstruction
+  (``init="csf2"``, the default) or the rigid factorisation.
+- ``"nuclear"``: the paper's nuclear norm, smoothed as ``sum_k sqrt(s_k^2 + e^2)`` with ``e`` decreased from
+  ``smoothing_start`` to ``smoothing_end`` (times the largest singular value) over ``stages`` continuation stages.
+  ``regulariser=nuclear centre=false init=rigid`` is the TIP paper's formulation.
 
-Missing points: their x, y are free variables like the depths. The tracks
-are first completed: exactly where the visible entries are exactly low-rank
-(noise-free tracks), else by a rank-3K imputation (CSF2's automatic K). The
-completion fixes the objective (each frame's centring, the scale and, through
-CSF2's reconstruction of the completed tracks, the log-determinant's
-``delta``). On imputed tracks the free variables then start from CSF2's
-occlusion-aware reconstruction (``start_rounds`` camera rounds; EM-PND's
-start), which fits the visible entries only: the imputation can be far off
-where a point is missing long, and on dance with 20% missing CSF2 on the
-imputed tracks gave e3D 1.23 and PR from it 1.30, against .176 from the
-occlusion-aware start (drink, pickup, yoga and stretch end at the same
-minimum either way; ``benchmarks/RESULTS.md``). Sequences too small for CSF2
-(``min(2F, P) < 6``) or where it fails fall back to the rigid start, recorded
-in ``info["init"]``.
+Missing points: their x, y are free variables like the depths. The tracks are first completed: exactly where the
+visible entries are exactly low-rank (noise-free tracks), else by a rank-3K imputation (CSF2's automatic K). The
+completion fixes the objective (each frame's centring, the scale and ``delta``). On imputed tracks the free
+variables then start from CSF2's occlusion-aware reconstruction (``start_rounds`` camera rounds), which fits the
+visible entries only, since the imputation can be far off where a point is missing long. Sequences too small for
+CSF2 (``min(2F, P) < 6``) or where it fails fall back to the rigid start, recorded in ``info["init"]``.
 
-Threads: L-BFGS runs with numpy's BLAS on one thread (``threadpoolctl``);
-torch keeps its own threads. Each evaluation mixes torch's batched `(3, 3)`
-work with numpy, and two thread pools busy-waiting on the same cores made
-PR several times slower on a 2-core machine (drink 20.1 -> 10.6 s, dance
-159.6 -> 28.5 s, the shark 39.3 -> 5.4 s with this limit; the same e3D).
-torch's own thread count is never changed: doing so can hang MKL
-(pytorch#141358; ``benchmarks/RESULTS.md``).
+Threads: L-BFGS runs with numpy's BLAS on one thread (``threadpoolctl``): each evaluation mixes torch's batched
+`(3, 3)` work with numpy, and two thread pools busy-waiting on the same cores slow it down. torch's own thread
+count is left alone (changing it can hang MKL, pytorch#141358).
 """
 
 from __future__ import annotations
@@ -91,20 +66,18 @@ class PRParams:
         centre: regularise the aligned shapes minus their mean shape (default) or the aligned shapes.
         delta_rel: log-determinant offset relative to the largest singular value of the start.
         init: ``"csf2"`` (default: CSF2's reconstruction) or ``"rigid"`` (the rank-3 factorisation).
-        init_K: CSF2's K for the start (0: CSF2's automatic rule; with missing points the rule runs once on
-            the visible entries, not on the completion, whose W is never exactly low-rank).
-        smoothing_start / smoothing_end: relative smoothing ``e / s_max`` of
-            the nuclear norm at the first and last continuation stage.
+        init_K: CSF2's K for the start (0: CSF2's automatic rule; with missing points the rule runs once on the
+            visible entries, not on the completion, whose W is never exactly low-rank).
+        smoothing_start / smoothing_end: relative smoothing ``e / s_max`` of the nuclear norm at the first and last
+            continuation stage.
         stages: continuation stages of the nuclear norm (geometric steps from start to end).
         max_iter: L-BFGS iterations (per stage for the nuclear norm).
         tol: L-BFGS relative function tolerance.
-        impute_rank: rank of the measurement-matrix completion (:func:`~nrsfm.solvers.base.complete_lowrank`) used to
-            initialise missing points (0: 3K with CSF2's automatic K, the rank CSF2 imputes with; rank 9
-            gave yoga with 20% missing e3D .108 against .0196).
-        start_rounds: with missing points on tracks that are not exactly low-rank, the free variables start
-            from CSF2's occlusion-aware reconstruction cut to this many camera rounds (module docstring,
-            "Missing points"); 0: from CSF2 on the imputed tracks (before session 20). On dance with 20%
-            missing, 10% of the imputed entries were off by more than 1.3 times the tracks' RMS.
+        impute_rank: rank of the measurement-matrix completion (:func:`~nrsfm.lowrank.complete_lowrank`) used to
+            initialise missing points (0: 3K with CSF2's automatic K, the rank CSF2 imputes with).
+        start_rounds: with missing points on tracks that are not exactly low-rank, the free variables start from
+            CSF2's occlusion-aware reconstruction cut to this many camera rounds (module docstring, "Missing
+            points"); 0: from CSF2 on the imputed tracks.
     """
 
     regulariser: str = "logdet"
@@ -150,21 +123,8 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
 
     n_frames, n_points = seq.n_frames, seq.n_points
     visible = require_visible_points(seq, "pr")  # (F, P)
-    w = seq.measurement_matrix()  # (2F, P)
-    completion = "none"
-    if not visible.all():
-        mask = np.repeat(visible, 2, axis=0)
-        max_rank = auto_k_max_rank(w)
-        if params.impute_rank and params.init_K:
-            max_rank = min(max_rank, params.impute_rank)
-        # the visible entries' exact rank, if any, for one K (CSF2's rule on a completion sees a full-rank W)
-        # and for the completion
-        fit = visible_rank(w, mask, max_rank)
-        if not (params.impute_rank and params.init_K):
-            k = auto_k(w, mask, fit=fit)
-            params = replace(params, impute_rank=params.impute_rank or 3 * k,
-                             init_K=params.init_K or k)
-        w, completion = complete_lowrank(w, mask, params.impute_rank, fit)
+    mask = np.repeat(visible, 2, axis=0)  # (2F, P)
+    w, completion, params = _complete(seq.measurement_matrix(), mask, params)
     p2 = w.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
     centre = p2.mean(axis=1, keepdims=True)  # (F, 1, 2)
     p2 = p2 - centre
@@ -243,6 +203,25 @@ def solve_pr(seq: Sequence, params: PRParams) -> Reconstruction:
                                                      "init": init_used, "init_K": params.init_K,
                                                      "impute_rank": params.impute_rank,
                                                      "completion": completion})
+
+
+def _complete(w: np.ndarray, mask: np.ndarray, params: PRParams) -> tuple[np.ndarray, str, PRParams]:
+    """`(2F, P)` ``w`` completed where ``mask`` hides entries (module docstring, "Missing points"), how
+    (``"none"``, ``"exact"``, ``"imputed"``), and ``params`` with the automatic ``init_K`` and ``impute_rank``
+    filled in."""
+    if mask.all():
+        return w, "none", params
+    max_rank = auto_k_max_rank(w)
+    if params.impute_rank and params.init_K:
+        max_rank = min(max_rank, params.impute_rank)
+    # the visible entries' exact rank, if any, for one K (CSF2's rule on a completion sees a full-rank W) and for
+    # the completion
+    fit = visible_rank(w, mask, max_rank)
+    if not (params.impute_rank and params.init_K):
+        k = auto_k(w, mask, fit=fit)
+        params = replace(params, impute_rank=params.impute_rank or 3 * k, init_K=params.init_K or k)
+    filled, completion = complete_lowrank(w, mask, params.impute_rank, fit)
+    return filled, completion, params
 
 
 def _occlusion_aware_start(seq: Sequence, params: PRParams) -> np.ndarray | None:

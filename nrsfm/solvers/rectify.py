@@ -16,8 +16,7 @@ Gotardo & Martinez (CVPR 2011):
 5. Depths: the per-frame depths that minimise the trace of the sample covariance of the lifted shapes, in
    closed form.
 
-The result starts :func:`nrsfm.solvers.empnd.solve_empnd` (``init="factorisation"``); on the CMU files it
-reproduces the authors' EM-PND2 numbers (see benchmarks/RESULTS.md).
+The result starts :func:`nrsfm.solvers.empnd.solve_empnd` (``init="factorisation"``).
 """
 
 from __future__ import annotations
@@ -34,13 +33,11 @@ class OrthonormalityConstraints:
     """The per-frame orthonormality constraints on ``GG`` for a `(2F, K)` factor ``u`` (rows ``a_f, b_f``).
 
     The constraint residual of a symmetric `(K, K)` ``GG`` is the `(2F,)` vector
-    ``A(GG) = [a_f^T GG a_f - b_f^T GG b_f ; 2 a_f^T GG b_f]``, linear in ``GG``: ``E vec(GG)`` for a
-    `(2F, K^2)` matrix ``E``. The solvers below only need its squared norm and gradient, i.e. products with
-    ``H = E^T E``, scaled to unit operator norm (``lipschitz`` is the scale removed). The iterations number in
-    the tens of thousands, so each product is one matrix-vector product: with ``H`` itself `(K^2, K^2)` when
-    ``K^2 <= 4F`` (every CMU file: F >= 240, K <= 27), else as ``E^T (E x)`` (short sequences, where K grows
-    past ``2 sqrt(F)``: 40 frames, K = 27, a quarter of the work). Applying the constraints as separate products
-    of ``a_f`` and ``b_f`` instead costs about three times as much in per-call overhead at these sizes.
+    ``A(GG) = [a_f^T GG a_f - b_f^T GG b_f ; 2 a_f^T GG b_f]``, linear in ``GG``: ``E vec(GG)`` for a `(2F, K^2)`
+    matrix ``E``. The solvers below only need its squared norm and gradient, i.e. products with ``H = E^T E``, scaled
+    to unit operator norm (``lipschitz`` is the scale removed). The iterations number in the tens of thousands, so
+    each product is one matrix-vector product: with ``H`` itself `(K^2, K^2)` when ``K^2 <= 4F``, else as
+    ``E^T (E x)``.
     """
 
     def __init__(self, u: np.ndarray) -> None:
@@ -123,14 +120,9 @@ def rectify_fista(con: OrthonormalityConstraints, gg: np.ndarray, tol: float = 1
 def rectify_rank(con: OrthonormalityConstraints, g: np.ndarray, rank: int = 3, tol: float = 1e-6,
                  floor: float = 0.0, max_iter: int = 50_000) -> tuple[np.ndarray, np.ndarray]:
     """Projected gradient over unit-trace PSD ``GG`` of rank at most ``rank``, from `(K, r)` factor ``g``;
-    stops when the cost falls by a relative ``tol`` or less in one step (the authors' rule), when the
-    unscaled squared residual is below ``floor`` or after ``max_iter`` steps.
-
-    The CMU files stop by the authors' rule within 35,700 steps at every K (yoga, K = 18), so ``max_iter``
-    (50,000) leaves their starts as they were (bit-identical). On short noisy tracks convergence is sublinear
-    and slow: 40 frames of a K = 5 sequence with 0.5% noise took 75,000-200,000 steps at each K from 12 to 27;
-    with the cap (and the factor products of :class:`OrthonormalityConstraints`) its start takes 18.6 s
-    instead of 91.8 s, and EM-PND ends at the same e3D (.0160).
+    stops when the cost falls by a relative ``tol`` or less in one step (the authors' rule), when the unscaled squared
+    residual is below ``floor`` or after ``max_iter`` steps (a cap the authors do not have: on short noisy tracks
+    convergence is sublinear and slow).
     """
     g = g[:, :rank] / np.linalg.norm(g[:, :rank])
     gg = g @ g.T
@@ -149,14 +141,13 @@ def factor_rotations(fd: np.ndarray, energy: float = 1 - 1e-5, floor: float = 1e
                      ) -> tuple[np.ndarray, np.ndarray, int]:
     """Camera rotations and scales from `(2F, P)` centred tracks (rows ``x_f, y_f`` interleaved).
 
-    ``K`` grows until the squared constraint residual is below ``floor``. The authors use machine epsilon;
-    projected gradient converges sublinearly on exact low-rank tracks (200,000 iterations, 12 s, to reach
-    2.6e-12 on a 200 x 30, K = 3 sequence), so we stop at 1e-10, far below the residual left on real tracks.
-    On noisy tracks the residual stays above it and ``K`` grows to its cap (the energy rule); each ``K`` runs
+    ``K`` grows until the squared constraint residual is below ``floor``. The authors use machine epsilon; projected
+    gradient converges sublinearly on exact low-rank tracks, so we stop at 1e-10, far below the residual left on real
+    tracks. On noisy tracks the residual stays above it and ``K`` grows to its cap (the energy rule); each ``K`` runs
     at most 50,000 steps (:func:`rectify_rank`).
 
-    Returns ``R`` `(F, 3, 3)` (columns: the two camera rows, then their cross product up to sign), relative
-    scales `(F,)` (smallest 1) and the ``K`` used.
+    Returns ``R`` `(F, 3, 3)` (columns: the two camera rows, then their cross product up to sign), relative scales
+    `(F,)` (smallest 1) and the ``K`` used.
     """
     u, sv, _ = np.linalg.svd(fd, full_matrices=False)
     if sv.size < 3:

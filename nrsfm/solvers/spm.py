@@ -3,60 +3,34 @@
 Rotation (cameras):
 
 1. the rank-3K factor ``Pi`` `(2F, 3K)` of the centred W;
-2. ``Q = G G^T`` `(3K, 3K)`, PSD, with each frame's two rows of ``Pi`` giving
-   equal norms and orthogonality (``a Q a^T = b Q b^T``, ``a Q b^T = 0``): a
-   convex program in cvxpy, least squares on those constraints plus a small
-   trace (low-rank) term under the normalisation mean(``a Q a^T + b Q b^T``)/2 = 1;
-3. rank-3 truncation ``G`` = top eigenvectors; nonlinear refinement of ``G``
-   on the scale-invariant orthonormality residual (BFGS, then an LM polish:
-   LM alone stalled 15 degrees off on drink with 2 BLAS threads);
-4. per frame: normalise the rows, third row by cross product. The sign of each
-   frame's scale is ambiguous (``M_f = c_f R_f`` with ``c_f < 0`` flips the
-   camera by 180 degrees about the optical axis). The authors keep the sign
-   that is within 90 degrees of the previous frame, which breaks when the
-   camera jumps (PRN's camera alternation). We instead compare every frame
-   with CSF2's cameras (:func:`nrsfm.solvers.csf2.camera_rows`: one linear map
-   of the SVD factor, so their signs are consistent over frames by
-   construction, and 0.2 degrees from the truth on drink) after one global
-   alignment, so no temporal continuity is assumed.
+2. ``Q = G G^T`` `(3K, 3K)`, PSD, with each frame's two rows of ``Pi`` giving equal norms and orthogonality
+   (``a Q a^T = b Q b^T``, ``a Q b^T = 0``): a convex program in cvxpy, least squares on those constraints plus a
+   small trace (low-rank) term under the normalisation mean(``a Q a^T + b Q b^T``)/2 = 1 (the authors solve an SDP
+   with SDPT3);
+3. rank-3 truncation ``G`` = top eigenvectors; nonlinear refinement of ``G`` on the scale-invariant orthonormality
+   residual (:func:`~nrsfm.solvers.cameras.refine_triple`);
+4. per frame: normalise the rows, third row by cross product. The sign of each frame's scale is ambiguous (a
+   camera flipped by 180 degrees about the optical axis). The authors keep the sign within 90 degrees of the
+   previous frame, which breaks when the camera jumps (PRN's camera alternation); we compare every frame with the
+   cameras of the corrective-matrix upgrade (:func:`~nrsfm.solvers.cameras.camera_rows`, whose signs are
+   consistent by construction) after one global alignment, so no temporal order is used.
 
-Shape: with ``S_f = R_f^T [W_f; z_f]`` (exact reprojection), minimise the
-nuclear norm of ``S#`` `(F, 3P)` (rows ``[X_f Y_f Z_f]``) over the depths
-``z`` — with cvxpy for small problems (``F + 3P <= cvxpy_limit``, 64), or by
-ADMM (:func:`shape_admm`) otherwise; the two agree on small problems (a test
-checks 1e-4). cvxpy writes the nuclear norm as a semidefinite block of side
-``F + 3P``, and Clarabel's interior point grows with that side, whatever the
-shape of ``S#`` (one thread, one shape step): 0.6-1.5 s up to 60 (10 x 10 to
-30 x 10 frames x points), 1.9-2.5 s at 64-70 (4 x 20, 50 x 5, 6 x 20,
-10 x 20), 4.5-8.3 s at 80-90, 8.6-10.4 s at 93-94 (3 x 30, 4 x 30), 32-59 s
-at 120-136 (60 x 20, 100 x 12), 44 s at 128 (8 x 40) and 279 s at 185
-(5 x 60; these four: the whole solve, two threads), where ADMM takes
-0.001-0.03 s and lands within 9e-4 (relative) of cvxpy's depths. (The limit
-was on the entries ``F * 3P`` (1000) until 5 x 60 took 279 s.) The
-authors' fixed-point continuation (FPC: gradient step ``tau = 0.2`` on the
-reprojection, singular-value soft threshold, ``mu_l = max(1e-10, 4 *
-0.25^l)``) is kept as ``shape_solver="fpc"``: with their 20 stages it stops
-short of the minimum on the shark (e3D .875 against ADMM's .233 and the
-authors' published .2357). An optional final rank-K truncation follows the
-authors' code.
+Shape: with ``S_f = R_f^T [W_f; z_f]`` (exact reprojection), minimise the nuclear norm of ``S#`` `(F, 3P)` (rows
+``[X_f Y_f Z_f]``) over the depths ``z``: with cvxpy where its semidefinite block is small (``F + 3P <=
+cvxpy_limit``), by ADMM otherwise (:func:`shape_admm`); the two agree on small problems. The authors' fixed-point
+continuation is kept as ``shape_solver="fpc"`` (with their 20 stages it can stop short of the minimum). An optional
+final rank-K truncation follows the authors' code.
 
-Partial sum (``shape_objective="partial"``, not the authors' method, off by
-default): the nuclear norm shrinks the K singular values that carry the
-basis shapes too, so when the camera turns through a short arc its minimum
-is not the shape (noise-free K = 3 sequences of one steady turn, exact
-cameras: e3D .12-.33). :func:`shape_partial` then minimises the sum of the
-singular values beyond the K largest (Oh et al., TPAMI 2016) from the nuclear
-norm's depths: e3D 1e-4 there, and a lower camera-frame e3D on all six CMU
-files (drink .0220 -> .0154, pickup .0488 -> .0300, the shark .2333 ->
-.1923; object frame: drink .0264 -> .0196, pickup .1692 -> .1725, yoga
-.1379 -> .1391). The objective is not convex, and its CMU results move by up
-to 2% with the BLAS thread count. See ``benchmarks/RESULTS.md`` and
-``python -m benchmarks.studies.spm_shape``.
+Options that are not the authors' method, off by default:
 
-K: the authors' per-sequence settings (drink 12, pickup 12, yoga 10, stretch
-11, dance 10, face 7, walking 8, shark 4) when the sequence name matches,
-else :func:`auto_rank` (``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r`` up to 24, else the
-smallest K whose 3K singular values hold 99.5% of the energy).
+* ``shape_objective="partial"``: the sum of the singular values beyond the K largest (Oh et al., TPAMI 2016) from
+  the nuclear norm's depths (:func:`shape_partial`). The nuclear norm also shrinks the singular values that carry
+  the basis shapes, so its minimum is not the shape when the camera turns through a short arc. Not convex.
+* ``refine_cameras=true``: the cameras refined by the shape step's nuclear norm (:func:`refine_cameras_nuclear`).
+
+K (``K = 0``): :func:`auto_rank`, ``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r``, else the
+smallest K whose 3K singular values hold 99.5% of the energy. The authors' K per CMU file is a settings table of
+``benchmarks/classic.py``.
 """
 
 from __future__ import annotations
@@ -131,9 +105,8 @@ def auto_rank(w: np.ndarray, energy: float = 0.995, k_min: int = 2, k_max: int =
     ``r <= 3 k_max`` below ``min(2F, P - 1)`` (singular values below ``rel_tol`` of the largest are zero: noise-free
     tracks), else the smallest K whose 3K singular values hold ``energy`` of the total; within ``[k_min, k_max]``.
 
-    The rank comes first because the energy rule under-counts exactly low-rank tracks whose last basis shape
-    moves little: on the noise-free K = 3 sequences with smooth cameras (300 and 3000 x 17) it gave K = 2,
-    whose cameras were 9-10 degrees off (camera error .18 and .16), where K = 3 gives exact cameras.
+    The rank comes first because the energy rule under-counts exactly low-rank tracks whose last basis shape moves
+    little.
     """
     s = np.linalg.svd(w, compute_uv=False)
     rank = int((s > rel_tol * s[0]).sum()) if s.size and s[0] > 0 else 0
@@ -168,8 +141,7 @@ def rotation_program(pi: np.ndarray, trace_weight: float) -> np.ndarray:
 
     aqa, bqb, aqb = rows(a, a), rows(b, b), rows(a, b)
     # sum_f (aQa - bQb)^2 + 4 (aQb)^2 = |C t|^2 with C (2F, r(r+1)/2); its R factor (r(r+1)/2 square) gives the
-    # same objective with 2F / (r(r+1)/2) times fewer rows (drink, K = 12: 2204 -> 666; cvxpy built the 2F rows
-    # from Q entry by entry, and Clarabel took 10.3 s)
+    # same objective with far fewer rows than the 2F that cvxpy would build from Q entry by entry
     factor = np.linalg.qr(np.concatenate([aqa - bqb, 2 * aqb]), mode="r")
     t = cp.hstack([cp.diag(q), cp.reshape(cp.upper_tri(q), (len(iu),), order="F")])
     scale = np.mean((a * a).sum(1) + (b * b).sum(1)) / 2  # keeps the objective's terms comparable
@@ -206,11 +178,10 @@ def _solve(problem, variable, what: str) -> np.ndarray:
 def resolve_signs(rot: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Flip frames by diag(-1, -1, 1) so that the camera rows agree with ``reference`` `(F, 3, 3)`.
 
-    ``reference`` (CSF2's cameras) is consistent over frames
-    but lives in another object frame, possibly mirrored: we fit one global
-    orthogonal H with ``reference_f[:2] ~ s_f rot_f[:2] H`` and the per-frame
-    signs ``s_f`` jointly (alternating, from several seed frames). No
-    temporal order is used, so camera jumps are handled.
+    ``reference`` (the corrective-matrix cameras) is consistent over frames but lives in another object frame,
+    possibly mirrored: one global orthogonal H with ``reference_f[:2] ~ s_f rot_f[:2] H`` and the per-frame signs
+    ``s_f`` are fitted jointly (alternating, from several seed frames). No temporal order is used, so camera jumps
+    are handled.
     """
     r2, q2 = rot[:, :2], reference[:, :2]
     best_cost, best_signs = np.inf, np.ones(len(rot))
@@ -240,7 +211,7 @@ class Cameras:
         g: `(3K, 3)` the refined corrective triple.
         signs: `(F,)` +1 or -1: frame f's rows are ``signs[f]`` times the orthonormalised ``pi[f] @ g``.
         residual: the orthonormality cost at ``g``.
-        reference: `(F, 3, 3)` CSF2's cameras, which the signs were resolved against.
+        reference: `(F, 3, 3)` the corrective-matrix cameras the signs were resolved against.
     """
 
     rotations: np.ndarray
@@ -281,14 +252,11 @@ def refine_cameras_nuclear(wf: np.ndarray, cameras: Cameras, depth: np.ndarray, 
     """Cameras `(F, 3, 3)` refined by the shape step's objective (``SPMParams.refine_cameras``).
 
     Minimises, jointly over the corrective triple ``G`` `(3K, 3)` and the depths ``z`` `(F, P)`,
-    ``||S#(R(G), z)||_* / ||S#_0||_* + weight * orthonormality residual(G)``, from :func:`camera_step`'s
-    ``cameras`` and the shape step's ``depth`` at them (``S#_0``): ``R_f`` is the frame's sign times the nearest
-    orthonormal rows to ``pi_f G``, third row by cross product; the residual is the camera step's. L-BFGS (torch,
-    float64, CPU) for ``iters`` iterations. The camera step alone fits orthonormality only, and on yoga its
-    minimum is 20% above the authors' object-frame e3D; this asks the nuclear norm too. Measured by
-    ``python -m benchmarks.studies.spm_cameras`` (``benchmarks/RESULTS.md``): at weight 3 the camera-frame e3D falls on
-    all six CMU files and the object-frame e3D on pickup, yoga and stretch, but drink's cameras move off (object
-    frame .0264 -> .0500), so it is not the default.
+    ``||S#(R(G), z)||_* / ||S#_0||_* + weight * orthonormality residual(G)``, from :func:`camera_step`'s ``cameras``
+    and the shape step's ``depth`` at them (``S#_0``): ``R_f`` is the frame's sign times the nearest orthonormal rows
+    to ``pi_f G``, third row by cross product; the residual is the camera step's. L-BFGS (torch, float64, CPU) for
+    ``iters`` iterations. The camera step alone fits orthonormality only; this asks the nuclear norm too. Not the
+    authors' method (off by default).
 
     Args:
         wf: `(F, 2, P)` centred tracks.
@@ -348,8 +316,8 @@ def refine_cameras_nuclear(wf: np.ndarray, cameras: Cameras, depth: np.ndarray, 
 def shape_cvxpy(w: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """Depths `(F, P)` minimising ``||S#||_*`` exactly (cvxpy), for `(F, 2, P)` centred ``w``, `(F, 3, 3)` ``rot``.
 
-    The program sees ``w`` in units of the power of two nearest its RMS (Clarabel's tolerances are absolute: at
-    RMS 1e-7 it stopped inaccurate on a noise-free 40 x 15 sequence, e3D .0165 against .0000 at 1)."""
+    The program sees ``w`` in units of the power of two nearest its RMS: Clarabel's tolerances are absolute.
+    """
     import cvxpy as cp
 
     n_frames, _, n_points = w.shape
@@ -363,12 +331,11 @@ def shape_cvxpy(w: np.ndarray, rot: np.ndarray) -> np.ndarray:
 
 def singular_value_threshold(m: np.ndarray, t: float, keep: int = 0) -> np.ndarray:
     """``U max(S - t, 0) V^T`` for ``m = U S V^T`` `(a, b)`, through the eigenvectors of the smaller Gram matrix;
-    the ``keep`` largest singular values are not shrunk (the proximal map of the partial sum of the others:
-    Oh et al., TPAMI 2016).
+    the ``keep`` largest singular values are not shrunk (the proximal map of the partial sum of the others: Oh et al.,
+    TPAMI 2016).
 
-    Only the singular values above ``t`` are kept, so the squared condition number of the Gram matrix does not
-    reach the result. On a 1102 x 123 matrix (drink's ``S#``): 3.1 ms against 10.2 ms for ``numpy.linalg.svd``
-    on one core, 2.4 ms against 19.0 ms on two.
+    Only the singular values above ``t`` are kept, so the squared condition number of the Gram matrix does not reach
+    the result.
     """
     if m.shape[0] < m.shape[1]:
         return singular_value_threshold(m.T, t, keep).T
@@ -424,18 +391,12 @@ def shape_admm(w: np.ndarray, rot: np.ndarray, *, tol: float = 1e-4, max_iter: i
                rho: float | None = None) -> tuple[np.ndarray, int]:
     """Depths `(F, P)` minimising ``||S#||_*`` by ADMM; for `(F, 2, P)` centred ``w`` and `(F, 3, 3)` ``rot``.
 
-    With exact reprojection, ``S#(z) = B + L(z)``: ``B`` `(F, 3P)` holds the
-    back-projected tracks ``R_f^(2)T W_f`` and ``L(z)_f = r3_f kron z_f`` puts
-    each depth along its camera's third row ``r3_f``. ``L^T L = I``, so the
-    splitting ``min ||Y||_* s.t. Y = B + L(z)`` has closed-form steps: ``Y`` by
-    singular-value thresholding, ``z = L^T(Y - B - U)`` (Boyd et al. 2011,
-    over-relaxed, penalty balanced every 10 iterations). Stops when the primal
-    and dual residuals fall below ``tol`` relative to their scales.
-
-    Why not FPC: its fixed step (``tau = 0.2``) and continuation left the
-    shark 6% above the minimum nuclear norm after 20 x 100 steps (e3D .875,
-    .775 after 20 x 1000 steps in 74 s); ADMM reaches it in 239 iterations
-    at ``tol = 1e-4`` (1.2 s, e3D .2333).
+    With exact reprojection, ``S#(z) = B + L(z)``: ``B`` `(F, 3P)` holds the back-projected tracks ``R_f^(2)T W_f``
+    and ``L(z)_f = r3_f kron z_f`` puts each depth along its camera's third row ``r3_f``. ``L^T L = I``, so the
+    splitting ``min ||Y||_* s.t. Y = B + L(z)`` has closed-form steps: ``Y`` by singular-value thresholding,
+    ``z = L^T(Y - B - U)`` (Boyd et al. 2011, over-relaxed, penalty balanced every 10 iterations). Stops when the
+    primal and dual residuals fall below ``tol`` relative to their scales. Unlike the authors' FPC, whose fixed step
+    and continuation can stop short of the minimum, it runs to the stated tolerance.
 
     Returns:
         the depths `(F, P)` and the number of iterations.
@@ -468,16 +429,11 @@ def shape_partial(w: np.ndarray, rot: np.ndarray, keep: int, depth: np.ndarray, 
     """Depths `(F, P)` minimising the partial sum of ``S#``'s singular values (all but the ``keep`` largest),
     from the depths ``depth`` `(F, P)` (the nuclear norm's); for `(F, 2, P)` centred ``w`` and `(F, 3, 3)` ``rot``.
 
-    The nuclear norm shrinks every singular value, the K that carry the basis shapes too, so on a camera path
-    that covers a small arc (a steady turn of 90-170 degrees) its minimum is not the shape: with the true cameras
-    it gives e3D .33 on a noise-free 300 x 17, K = 3 sequence (the true shapes' nuclear norm is 3% above the
-    minimum's). The
-    partial sum (Oh et al., "Partial sum minimization of singular values in robust PCA", TPAMI 2016) leaves
-    the ``keep`` largest alone. The splitting is :func:`shape_admm`'s with their partial thresholding as the
-    ``Y`` step and, as in their ALM, a penalty that grows by ``grow`` every iteration (the objective is not
-    convex; with the penalty balanced instead the iterates cycled, and with ``grow = 1.01`` the CMU results moved
-    by up to 40% with the BLAS thread count, by 2% at 1.03). Stops when the primal residual and the relative
-    change of the depths fall below ``tol``.
+    The partial sum (Oh et al., "Partial sum minimization of singular values in robust PCA", TPAMI 2016) leaves the
+    ``keep`` largest singular values, which carry the basis shapes, alone. The splitting is :func:`shape_admm`'s with
+    their partial thresholding as the ``Y`` step and, as in their ALM, a penalty that grows by ``grow`` every
+    iteration (the objective is not convex; a balanced penalty lets the iterates cycle). Stops when the primal
+    residual and the relative change of the depths fall below ``tol``.
 
     Returns:
         the depths `(F, P)` and the number of iterations.

@@ -37,15 +37,15 @@ def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_to
     """CSF2's automatic K for a `(2F, P)` W: ``ceil(r / 3)``, plus one when 3 does not divide ``r``, for a rank
     ``r`` of the centred W, at most ``k_max`` and with 3K < min(2F, P) (module docstring).
 
-    ``r`` is the numerical rank (singular values above ``rel_tol`` times the largest) when W is rank deficient;
-    when it is not, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_rank`), and the cap
-    where W does not look like one (real motion capture).
+    ``r`` is the numerical rank (singular values above ``rel_tol`` times the largest) when W is rank deficient; when
+    it is not, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_rank`), and the cap where W does not look
+    like one (real motion capture).
 
-    With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less
-    than ``rel_tol`` of their RMS (:func:`~nrsfm.lowrank.visible_rank`, on at most ``max_frames`` frames and
-    ``max_points`` points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); where none
-    fits, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_visible_rank`, seconds: 4.9 s on
-    drink and 9.2 s on dance with 20% missing for the whole rule, one core), and the cap where there is none.
+    With missing entries (``mask`` False) the rank r is the smallest whose fit to the visible entries leaves less than
+    ``rel_tol`` of their RMS (:func:`~nrsfm.lowrank.visible_rank`, on at most ``max_frames`` frames and ``max_points``
+    points, ranks up to 3 (cap - 2); ``fit`` passes its result when already computed); where none fits, the rank of
+    noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_visible_rank`, seconds on long sequences), and the cap where
+    there is none.
     """
     cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
     if mask is not None and not mask.all():
@@ -89,12 +89,10 @@ _SHARED_STARTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("cs
 def shared_starts():
     """Within this block, :func:`csf2_start` computes each start once and hands out copies.
 
-    Solvers that run other solvers (the consensus: EM-PND and PR) start both from the same CSF2 reconstruction
-    when points are missing (its occlusion-aware form, 50 camera rounds; 10 s of drink with 20% missing). A
-    start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the K it chose too,
-    where that K given would search the same ranks) and the other settings; the cache ends with the block.
-    So is the noise rank of :func:`auto_k` with missing points (most of its 4.9 s on drink with 20% missing),
-    which both solvers' automatic K compute.
+    Solvers that run other solvers (the consensus: EM-PND and PR) start both from the same CSF2 reconstruction when
+    points are missing. A start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the
+    K it chose too, where that K given would search the same ranks) and the other settings; the cache ends with the
+    block. So is the noise rank of :func:`auto_k` with missing points, which both solvers' automatic K compute.
     """
     token = _SHARED_STARTS.set({})
     try:

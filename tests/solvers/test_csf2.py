@@ -19,8 +19,7 @@ def test_csf2_recovers_a_noise_free_low_rank_sequence():
 def test_csf2_occlusion_ranks_the_shape_starts_on_the_visible_entries():
     """With 20% missing the residual start fits the imputed W only .7% better than the authors' start (under
     ``start_margin``) but ends at e3D .04 where that one ends at .84; on a synthetic face the residual start refines
-    better on the visible entries but ends worse, and five probe rounds keep the authors' start
-    (``benchmarks/RESULTS.md``, session 34)."""
+    better on the visible entries but ends worse, and five probe rounds keep the authors' start."""
     from nrsfm.datasets.synthetic import drop_entries, face_sequences
 
     seq = drop_entries(lowrank_sequence(300, 41, 4, cameras="smooth", seed=2, noise=0.01, name="smooth:4:2:0.01"), 0.2)

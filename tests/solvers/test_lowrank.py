@@ -22,9 +22,8 @@ def test_lowrank_fit_finds_the_rank_with_missing_entries(rng):
 
 
 def test_exact_completion_of_noise_free_tracks():
-    """The 150-frame face (rank 7) with 20% missing: the rank ladder reaches the exact rank-7 fit (before session
-    30's gauge-free steps it stalled there, residual > 1e-4, and fitted 8, whose completion is not unique); the
-    fill is the true W. CSF2 then matches its complete-track result."""
+    """The 150-frame face (rank 7) with 20% missing: the rank ladder reaches the exact rank-7 fit (not rank 8,
+    whose completion is not unique); the fill is the true W. CSF2 then matches its complete-track result."""
     from nrsfm.datasets.synthetic import face_sequences
     from nrsfm.lowrank import complete_lowrank, lowrank_fit, visible_rank
 
@@ -91,8 +90,8 @@ def test_noise_visible_rank_finds_the_noise_floor_with_missing_points():
 
 def test_noise_visible_rank_does_not_depend_on_rounding():
     """The ladder's fits must be minima, not wherever 30 iterations stopped: perturbed by 1e-13 of each entry (as
-    another BLAS or thread count rounds), these 5%-noise tracks of rank 12 gave ranks 9, 8, 11 before the
-    Levenberg-Marquardt steps left the gauge out (``benchmarks/RESULTS.md``, session 30)."""
+    another BLAS or thread count rounds), these 5%-noise tracks of rank 12 give one rank: steps that include the
+    gauge direction gave 9, 8 and 11."""
     from nrsfm.datasets.synthetic import drop_entries
     from nrsfm.lowrank import noise_visible_rank
 
