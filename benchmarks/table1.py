@@ -69,16 +69,6 @@ SYNTHETIC_FRAMES = 200
 
 
 # --------------------------------------------------------------------------- data
-def _detect_stride(root: Path, subject: str) -> int:
-    """5 for 50 fps files, 1 for 10 fps copies: judged from the joints' root-relative motion per frame."""
-    seqs = h36m.load_h36m(root, [subject], actions=("Walking",), cameras=(1,), stride=1)
-    if not seqs:
-        return 5
-    x = seqs[0].points_3d - seqs[0].points_3d[:, :1]
-    step = np.median(np.linalg.norm(np.diff(x, axis=0), axis=2))
-    return 1 if step > 12.0 else 5
-
-
 def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict[str, Split], dict]:
     """The train/test data of every input type, and a description for the metadata."""
     if args.data == "synthetic":
@@ -111,7 +101,7 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
     if not train_s or not test_s:
         raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS} and test subjects "
                               f"{h36m.TEST_SUBJECTS}, found {sorted(present)}")
-    stride = _detect_stride(root, test_s[0]) if args.stride == "auto" else int(args.stride)
+    stride = h36m.detect_stride(root, test_s[0]) if args.stride == "auto" else int(args.stride)
     fps = 50.0  # the public files' rate; the loaders report fps = 50 / stride
     desc = {"data": "h36m", "root": str(root), "train_subjects": train_s, "test_subjects": test_s,
             "missing_test_subjects": [s for s in h36m.TEST_SUBJECTS if s not in present], "stride": stride,

@@ -330,3 +330,14 @@ def _load_pickled_dict(path, key: str) -> dict:
         raise
     except Exception as exc:
         raise DataFormatError(f"{path}: expected a VideoPose3D .npz file, could not read it ({exc})") from None
+
+
+def detect_stride(root: str | os.PathLike, subject: str) -> int:
+    """The frame stride that brings the copy under ``root`` to PRN's 10 fps: 5 for the public 50 fps files, 1
+    for a copy that already holds every 5th frame; judged from the joints' root-relative motion per frame of
+    ``subject``'s Walking (camera 1)."""
+    seqs = load_h36m(root, [subject], actions=("Walking",), cameras=(1,), stride=1)
+    if not seqs:
+        return 5
+    x = seqs[0].points_3d - seqs[0].points_3d[:, :1]
+    return 1 if float(np.median(np.linalg.norm(np.diff(x, axis=0), axis=2))) > 12.0 else 5

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import auto_k, classic, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape, table1
+from benchmarks import classic, table1
 from benchmarks.common import Interrupted, run_cells
+from benchmarks.studies import auto_k, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape
 from nrsfm import solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
