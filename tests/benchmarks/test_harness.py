@@ -100,7 +100,7 @@ def test_classic_without_data_runs_the_stand_ins_and_refuses_unknown_names(tmp_p
 
 
 def test_speed_empnd_times_each_device_and_refuses_bad_arguments(tmp_path, capsys, monkeypatch):
-    from benchmarks import speed_empnd
+    from benchmarks.studies import speed_empnd
 
     monkeypatch.delenv("NRSFM_DATA", raising=False)
     out = tmp_path / "out"
