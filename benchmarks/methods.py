@@ -49,3 +49,114 @@ def prn_fcn(split: Split, ctx: RunContext) -> list[np.ndarray]:
 @register_method("PRN w/o reg", ("gt-ortho", "gt-persp", "sh"), "the same network and data term, lambda = 0")
 def prn_no_reg(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _train_prn(split, ctx, "PRN w/o reg", 0.0)
+
+
+# --------------------------------------------------------------------------- baselines
+def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np.ndarray], key: dict
+                       ) -> list[np.ndarray]:
+    """PRN-FCN trained on ``shapes`` with the supervised 3D loss (:mod:`baselines.supervised`), cached by
+    configuration and ``key`` (what the shapes are), then run on the test inputs."""
+    from baselines.supervised import train_supervised
+    from prn.train import load_model, predict
+
+    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device)
+    cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
+                                 "input": split.input_type, "targets": key})
+    model_path = cache / "model.pt"
+    from prn.data import build_training_set
+
+    if model_path.exists() and not ctx.retrain:
+        log.info("%s: using the cached model %s", name, model_path)
+        model = load_model(model_path, ctx.device)
+        data = build_training_set(split.train_inputs, split.train_targets, sampling="random")
+        info = json.loads((cache / "train.json").read_text())
+        ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
+            {"cached": True, "train_seconds": info["seconds"], "iterations": info["iterations_run"],
+             "cache": str(cache)})
+    else:
+        res, data = train_supervised(split.train_inputs, shapes, config, cache, targets_2d=split.train_targets,
+                                     resume=not ctx.retrain, progress=ctx.progress)
+        model = res.model
+        ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
+            {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
+             "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
+    out = []
+    for seq in split.test_inputs:
+        x, w = data.prepare_inputs(seq)
+        out.append(predict(model, x, w))
+    return out
+
+
+def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:
+    """A "+NN" row: pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`), then the
+    supervised network."""
+    from baselines.labels import code_version, make_labels
+
+    labels = make_labels(split.train_inputs, solver, out_dir=ctx.out_dir / "labels", dataset=split.tag,
+                         jobs=ctx.jobs, progress=ctx.progress)
+    s = labels.summary
+    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
+             solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
+             f"{s['label_mpjpe']:.1f}" if s["label_mpjpe"] is not None else "-", s["seconds"])
+    ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
+    return _cached_supervised(split, ctx, name, labels.labels,
+                              {"solver": solver, "code": code_version(), "gap": s["gap"]})
+
+
+@register_method("CSF2 + NN", ("gt-ortho",), "PRN-FCN's network on CSF2's pseudo-3D labels (supervised)")
+def csf2_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "CSF2 + NN", "csf2")
+
+
+@register_method("SPM + NN", ("gt-ortho",), "PRN-FCN's network on SPM's pseudo-3D labels (supervised)")
+def spm_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "SPM + NN", "spm")
+
+
+@register_method("PR + NN", ("gt-ortho",), "PRN-FCN's network on PR's pseudo-3D labels (supervised)")
+def pr_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "PR + NN", "pr")
+
+
+@register_method("GT 3D", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN's network supervised with ground-truth 3D "
+                                                             "(the upper bound)")
+def gt_3d(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    truth = [s.points_3d for s in split.train_targets]
+    if any(t is None for t in truth):
+        raise ValueError("GT 3D: the training sequences carry no ground truth 3D")
+    return _cached_supervised(split, ctx, "GT 3D", truth, {"targets": "ground truth"})
+
+
+@register_method("C3DPO", ("gt-ortho", "gt-persp", "sh"), "C3DPO (Novotny et al., ICCV 2019), reimplemented")
+def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    from baselines.c3dpo import PAPER_ITERATIONS, C3DPOConfig, load_c3dpo, predict_c3dpo, train_c3dpo
+    from nrsfm.metrics import mpjpe_best_flip, stress
+    from prn.data import denormalize, normalize_2d
+
+    def normalised(seqs):  # every point, the never-detected ones with visibility 0 (C3DPO reads visibility)
+        return (np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]),
+                np.concatenate([s.weights for s in seqs]))
+
+    inputs, weights = normalised(split.train_inputs)
+    iterations = max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))  # the paper's epochs at PRN's scale
+    config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, seed=ctx.seed, device=ctx.device,
+                         checkpoint_every=max(100, iterations // 20))
+    cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,
+                                    "input": split.input_type})
+    key = f"C3DPO ({split.input_type})"
+    if (cache / "model.pt").exists() and not ctx.retrain:
+        model = load_c3dpo(cache / "model.pt", ctx.device)
+        info = json.loads((cache / "train.json").read_text())
+        ctx.timings[key] = {"cached": True, "train_seconds": info["seconds"], "iterations": iterations,
+                            "cache": str(cache)}
+    else:
+        model, info = train_c3dpo(inputs, weights, config, cache, resume=not ctx.retrain, progress=ctx.progress)
+        ctx.timings[key] = {"cached": False, "train_seconds": info["seconds"], "iterations": iterations,
+                            "cache": str(cache)}
+    preds = [predict_c3dpo(model, *normalised([seq])) for seq in split.test_inputs]
+    # C3DPO's own protocol beside the table's: root-centred MPJPE, better of raw and depth-flipped, and stress
+    pred_mm = np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
+    truth_mm = np.concatenate([t.points_3d for t in split.test_truth])
+    ctx.timings[key]["own_protocol"] = {"mpjpe_best_flip_mm": mpjpe_best_flip(pred_mm, truth_mm),
+                                        "stress_mm": stress(pred_mm, truth_mm)}
+    return preds

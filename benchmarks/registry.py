@@ -46,7 +46,8 @@ class Split:
 
 @dataclass
 class RunContext:
-    """Options of one harness run: output folder (caches), iterations, seed, progress bars.
+    """Options of one harness run: output folder (caches), iterations, seed, progress bars, parallel jobs (the
+    pseudo-label solves), C3DPO's minibatch.
 
     By default a cached model is reused and an interrupted training resumes
     from its checkpoint; ``retrain`` ignores both and trains from scratch.
@@ -58,6 +59,8 @@ class RunContext:
     progress: bool = True
     device: str = "auto"
     retrain: bool = False
+    jobs: int = 1
+    c3dpo_batch: int = 1024
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

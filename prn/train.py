@@ -23,6 +23,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -113,14 +114,29 @@ class TrainResult:
     iterations_per_second: float
 
 
+class Objective(Protocol):
+    """Another training objective for the same network and recipe (the supervised "+NN" baselines).
+
+    ``to(device)`` returns the objective with its tensors on ``device``; ``sample(rng)`` the `(N,)` training frames
+    of one minibatch; ``loss(pred, idx)`` the scalar loss of the `(N, P, 3)` predictions for frames ``idx``.
+    """
+
+    def to(self, device: torch.device) -> "Objective": ...
+
+    def sample(self, rng: np.random.Generator) -> np.ndarray: ...
+
+    def loss(self, pred: torch.Tensor, idx: torch.Tensor) -> torch.Tensor: ...
+
+
 def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str | os.PathLike | None = None, *,
           resume: bool = True, progress: bool = True, log_every: int = 100,
-          stop_after: int | None = None) -> TrainResult:
-    """Train PRN-FCN on ``data`` with the PR loss.
+          stop_after: int | None = None, objective: Objective | None = None) -> TrainResult:
+    """Train PRN-FCN on ``data`` with the PR loss (or ``objective``).
 
     Args:
         data: from :func:`prn.data.build_training_set`.
         config: hyper-parameters; ``lam = 0`` trains "PRN w/o reg".
+        objective: replaces the PR loss and the group sampling (same network, optimiser, schedule, checkpoints).
         out_dir: where ``checkpoint.pt`` and ``model.pt`` go (None: no files).
         resume: continue from ``out_dir/checkpoint.pt`` when it exists.
         progress: show a tqdm bar (quiet when stderr is not a terminal).
@@ -132,7 +148,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
     """
     with no_denormals():
         return _train(data, config, out_dir, resume=resume, progress=progress, log_every=log_every,
-                      stop_after=stop_after)
+                      stop_after=stop_after, objective=objective)
 
 
 @contextlib.contextmanager
@@ -152,7 +168,7 @@ def no_denormals():
 
 
 def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, progress: bool, log_every: int,
-           stop_after: int | None) -> TrainResult:
+           stop_after: int | None, objective: Objective | None) -> TrainResult:
     from tqdm.auto import tqdm
 
     device = pick_device(config.device)
@@ -179,6 +195,8 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)
         log.info("resumed from %s at iteration %d", ckpt_path, start)
 
+    if objective is not None:
+        objective = objective.to(device)
     x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
     xw_all = torch.as_tensor(data.input_weights, dtype=torch.float32, device=device)
     y_all = torch.as_tensor(data.targets, dtype=torch.float32, device=device)
@@ -196,17 +214,21 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             _freeze_bn_stats(model)
         for g in opt.param_groups:
             g["lr"] = config.lr_at(it)
-        idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
-                              device=device)
-        xw, yw = xw_all[idx], yw_all[idx]
-        if config.missing_points > 0:
-            frac = torch.empty(len(idx), 1, device=device).uniform_(0.05, config.missing_points)
-            keep = (torch.rand(len(idx), yw.shape[1], device=device) >= frac).to(yw.dtype)  # (N, P)
-            yw = yw * keep
-            if data.input_points is not None and len(data.input_points) == yw.shape[1]:
-                xw = xw * keep
-        pred = model(x_all[idx], xw)
-        loss = pr_loss(pred, y_all[idx], yw, lam=config.lam, group_size=config.group_size, parts=parts)
+        if objective is not None:
+            idx = torch.as_tensor(objective.sample(rng), device=device)
+            loss = objective.loss(model(x_all[idx], xw_all[idx]), idx)
+        else:
+            idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
+                                  device=device)
+            xw, yw = xw_all[idx], yw_all[idx]
+            if config.missing_points > 0:
+                frac = torch.empty(len(idx), 1, device=device).uniform_(0.05, config.missing_points)
+                keep = (torch.rand(len(idx), yw.shape[1], device=device) >= frac).to(yw.dtype)  # (N, P)
+                yw = yw * keep
+                if data.input_points is not None and len(data.input_points) == yw.shape[1]:
+                    xw = xw * keep
+            pred = model(x_all[idx], xw)
+            loss = pr_loss(pred, y_all[idx], yw, lam=config.lam, group_size=config.group_size, parts=parts)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if not torch.isfinite(loss):

@@ -1,0 +1,302 @@
+"""C3DPO: canonical 3D pose networks for non-rigid structure from motion (Novotny, Ravi, Graham, Neverova &
+Vedaldi, ICCV 2019), reimplemented after the authors' code (``c3dpo_nrsfm``, ``model.py``, ``cfgs/h36m.yaml``).
+
+Model, for `(N, P, 2)` keypoints ``w`` and visibilities ``v`` (orthographic camera, no translation or scale):
+
+* the factorisation network ``phi``: ``[w * v, v]`` `(3P)` -> a 1x1-convolution trunk (``3P -> width``, BN,
+  ReLU, then ``n_layers`` bottleneck residual blocks ``width -> width/4 -> width/4 -> width``) -> K shape
+  coefficients ``alpha`` and a log-rotation ``r`` `(3)`; the canonical shape is ``X = S(alpha)`` `(3, P)` (a
+  learned linear basis with a bias), the camera-frame shape ``R X`` with ``R = exp([r]_x)``;
+* the reprojection loss: the pseudo-Huber distance ``c (sqrt(1 + |d|^2 / c^2) - 1)`` (``c = huber``) between the
+  first two rows of ``R X`` and ``w``, averaged over every visible keypoint of the minibatch;
+* the canonicalisation loss (transversality): ``n_rand`` copies of every canonical shape, each rotated by a random
+  rotation (angle up to ``pi``), go through a second network ``psi`` (the same trunk, 3D input) whose coefficients,
+  through the same basis ``S``, must give back the unrotated shape (pseudo-Huber);
+* in-plane augmentation: the rotation head sees ``w`` turned about the optical axis by up to ``z_angle`` (the
+  prediction is turned back), and the coefficients come from a second copy turned again (``z_equivariance``:
+  they must not depend on an in-plane rotation); the two copies go through ``phi`` separately, as in the authors'
+  Human3.6M configuration (``independent_phi_for_aug``);
+* at test time the image coordinates of visible points are the input's; only the depth comes from the network.
+
+Training (the authors' Human3.6M settings): SGD, momentum 0.9, lr 1e-3, weight decay 5e-4, batch 1024, 90 epochs
+of 1,249,280 samples with the lr divided by 10 after epochs 60 and 80: about 110k iterations
+(:data:`PAPER_ITERATIONS`); :class:`C3DPOConfig` scales the milestones with ``iterations``. Weights start as in
+their code: 1x1 convolutions normal(0, 0.01), biases 0, batch-norm scales uniform(0, 1).
+
+Departure: the inputs are normalised as PRN's (centred on the visible points, divided by their xy Frobenius
+norm), so that every row of a table sees the same inputs; the authors centre only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from nrsfm.device import pick_device
+from nrsfm.errors import ValidationError
+from nrsfm.procrustes import rotation_exp
+
+log = logging.getLogger(__name__)
+
+#: The authors' Human3.6M schedule in iterations: 90 epochs x 1,249,280 samples / 1024 per batch.
+PAPER_ITERATIONS = 90 * 1_249_280 // 1024
+
+
+@dataclass(frozen=True)
+class C3DPOConfig:
+    """C3DPO's model and training settings (the authors' Human3.6M values).
+
+    Attributes:
+        basis: K, the number of shape coefficients; width, n_layers: the trunks' width and residual blocks.
+        huber: the pseudo-Huber scale ``c``; n_rand: rotated copies per shape in the canonicalisation loss.
+        z_angle: the largest in-plane rotation of the augmentation (radians).
+        iterations, batch, lr, momentum, weight_decay: SGD; the lr is divided by 10 at 2/3 and 8/9 of
+            ``iterations`` (epochs 60 and 80 of 90).
+        seed, device, checkpoint_every: as :class:`prn.train.TrainConfig`.
+    """
+
+    basis: int = 10
+    width: int = 1024
+    n_layers: int = 6
+    huber: float = 0.01
+    n_rand: int = 4
+    z_angle: float = math.pi / 8
+    iterations: int = PAPER_ITERATIONS
+    batch: int = 1024
+    lr: float = 1e-3
+    momentum: float = 0.9
+    weight_decay: float = 5e-4
+    seed: int = 0
+    device: str = "auto"
+    checkpoint_every: int = 2000
+
+    def __post_init__(self) -> None:
+        if self.basis < 1 or self.width < 4 or self.n_layers < 0 or self.iterations < 1 or self.batch < 2:
+            raise ValidationError(f"C3DPOConfig: expected basis >= 1, width >= 4, n_layers >= 0, iterations >= 1, "
+                                  f"batch >= 2, got {self.basis}, {self.width}, {self.n_layers}, {self.iterations}, "
+                                  f"{self.batch}")
+
+    def lr_at(self, iteration: int) -> float:
+        drops = sum(iteration >= round(self.iterations * f) for f in (60 / 90, 80 / 90))
+        return self.lr * 0.1**drops
+
+
+def _linear(n_in: int, n_out: int, std: float = 0.01) -> nn.Linear:
+    layer = nn.Linear(n_in, n_out)
+    nn.init.normal_(layer.weight, 0.0, std)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def _bn(n: int) -> nn.BatchNorm1d:
+    bn = nn.BatchNorm1d(n)
+    nn.init.uniform_(bn.weight, 0.0, 1.0)
+    return bn
+
+
+class _Bottleneck(nn.Module):
+    """``width -> width/4 -> width/4 -> width`` (1x1 convolutions with BN, ReLU), plus the input, then ReLU."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        inner = width // 4
+        self.body = nn.Sequential(_linear(width, inner), _bn(inner), nn.ReLU(),
+                                  _linear(inner, inner), _bn(inner), nn.ReLU(),
+                                  _linear(inner, width), _bn(width))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.body(x) + x)
+
+
+def _trunk(n_in: int, width: int, n_layers: int) -> nn.Sequential:
+    return nn.Sequential(_linear(n_in, width), _bn(width), nn.ReLU(), *[_Bottleneck(width) for _ in range(n_layers)])
+
+
+def pseudo_huber(sq: torch.Tensor, scale: float) -> torch.Tensor:
+    """``c (sqrt(1 + d^2 / c^2 + 1e-4) - 1)`` of squared distances ``sq`` (the authors' ``huber``)."""
+    return (torch.clamp(1 + sq / scale**2, min=0.0) + 1e-4).sqrt().sub(1.0).mul(scale)
+
+
+def random_rotations(n: int, max_angle: float, axes: tuple[float, float, float], *, like: torch.Tensor
+                     ) -> torch.Tensor:
+    """`(n, 3, 3)` rotations about random axes (masked by ``axes``) by angles uniform in ``[0, max_angle]``."""
+    axis = torch.randn(n, 3, dtype=like.dtype, device=like.device) * torch.tensor(axes, dtype=like.dtype,
+                                                                                  device=like.device)
+    axis = axis / axis.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    angle = torch.rand(n, dtype=like.dtype, device=like.device) * max_angle
+    return rotation_exp(axis * angle[:, None])
+
+
+class C3DPO(nn.Module):
+    """The two networks and the shared shape basis (module docstring)."""
+
+    def __init__(self, n_points: int, config: C3DPOConfig = C3DPOConfig()) -> None:
+        super().__init__()
+        self.n_points, self.config = n_points, config
+        self.phi = _trunk(3 * n_points, config.width, config.n_layers)
+        self.alpha = _linear(config.width, config.basis)
+        self.basis = _linear(config.basis, 3 * n_points)
+        self.rot = _linear(config.width, 3)
+        self.psi = _trunk(3 * n_points, config.width, config.n_layers)
+        self.alpha_psi = _linear(config.width, config.basis)
+
+    def canonical(self, coefficients: torch.Tensor) -> torch.Tensor:
+        """`(N, K)` coefficients -> `(N, 3, P)` canonical shapes."""
+        return self.basis(coefficients).view(-1, 3, self.n_points)
+
+    def _phi(self, w: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        return self.phi(torch.cat([(w * v[:, None]).reshape(len(w), -1), v], dim=1))
+
+    def forward(self, w: torch.Tensor, v: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Shapes for `(N, 2, P)` centred keypoints ``w`` and `(N, P)` visibilities ``v``.
+
+        Returns ``camera`` `(N, 3, P)` (camera-frame shapes), ``canonical`` `(N, 3, P)` and ``rotation``
+        `(N, 3, 3)`; in training mode with the augmentation of the module docstring.
+        """
+        n = len(w)
+        if self.training:
+            r_aug = random_rotations(n, self.config.z_angle, (0.0, 0.0, 1.0), like=w)
+            r_eq = random_rotations(n, self.config.z_angle, (0.0, 0.0, 1.0), like=w)
+            w_aug = r_aug[:, :2, :2] @ w
+            feats = self._phi(w_aug, v)  # the rotation head's input
+            coefficients = self.alpha(self._phi(r_eq[:, :2, :2] @ w_aug, v))  # invariant to in-plane turns
+        else:
+            feats = self._phi(w, v)
+            coefficients = self.alpha(feats)
+        canonical = self.canonical(coefficients)
+        rotation = rotation_exp(self.rot(feats))
+        camera = rotation @ canonical
+        if self.training:  # undo the augmentation: back into the frame of w
+            rotation = r_aug.transpose(1, 2) @ rotation
+            camera = r_aug.transpose(1, 2) @ camera
+        return {"camera": camera, "canonical": canonical, "rotation": rotation}
+
+    def canonicalisation_loss(self, canonical: torch.Tensor) -> torch.Tensor:
+        """The pseudo-Huber distance between `(N, 3, P)` canonical shapes and ``psi``'s reconstruction of them
+        from ``n_rand`` randomly rotated copies (0 for a shape ``psi`` maps back exactly)."""
+        unrotated = canonical.repeat(self.config.n_rand, 1, 1)
+        rotated = random_rotations(len(unrotated), math.pi, (1.0, 1.0, 1.0), like=canonical) @ unrotated
+        back = self.canonicalise(rotated)
+        return pseudo_huber(((back - unrotated) ** 2).sum(dim=1), self.config.huber).mean()
+
+    def canonicalise(self, shapes: torch.Tensor) -> torch.Tensor:
+        """``psi``: `(N, 3, P)` shapes in any orientation -> `(N, 3, P)` canonical shapes."""
+        return self.canonical(self.alpha_psi(self.psi(shapes.reshape(len(shapes), -1))))
+
+    def reprojection_loss(self, camera: torch.Tensor, w: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Pseudo-Huber reprojection error averaged over the visible keypoints of the minibatch."""
+        dist = pseudo_huber(((camera[:, :2] - w) ** 2).sum(dim=1), self.config.huber)  # (N, P)
+        return (dist * v).sum() / v.sum().clamp_min(1.0)
+
+
+def _centre(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """`(N, P, 2)` keypoints centred on the visible ones, as `(N, 2, P)`."""
+    mass = np.maximum(v.sum(axis=1, keepdims=True), 1e-4)
+    mean = (w * v[..., None]).sum(axis=1, keepdims=True) / mass[..., None]
+    return (w - mean).transpose(0, 2, 1)
+
+
+def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
+                *, resume: bool = True, progress: bool = True) -> tuple[C3DPO, dict]:
+    """Train C3DPO on `(N, P, 2)` normalised keypoints and `(N, P)` visibilities; checkpoints every
+    ``checkpoint_every`` iterations to ``out_dir/checkpoint.pt`` (resumed when ``resume``), the final model to
+    ``out_dir/model.pt``. Returns the model (eval mode) and a record of the run."""
+    from tqdm.auto import tqdm
+
+    device = pick_device(config.device)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    model = C3DPO(inputs.shape[1], config).to(device)
+    opt = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum,
+                          weight_decay=config.weight_decay)
+    out = Path(out_dir) if out_dir is not None else None
+    ckpt = out / "checkpoint.pt" if out is not None else None
+    start, history = 0, []
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    if ckpt is not None and resume and ckpt.exists():
+        state = torch.load(ckpt, map_location=device, weights_only=False)
+        if state["config"] != dataclasses.asdict(config):
+            raise ValidationError(f"{ckpt}: the checkpoint was made with another configuration")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start, history = state["iteration"], state["history"]
+        rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"].cpu())
+    w_all = torch.as_tensor(_centre(inputs, weights), dtype=torch.float32, device=device)
+    v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
+    model.train()
+    t0 = time.perf_counter()
+    bar = tqdm(total=config.iterations, initial=start, desc="C3DPO", disable=not progress, mininterval=2.0)
+    for it in range(start, config.iterations):
+        for g in opt.param_groups:
+            g["lr"] = config.lr_at(it)
+        idx = torch.as_tensor(rng.integers(0, len(inputs), config.batch), device=device)
+        w, v = w_all[idx], v_all[idx]
+        pred = model(w, v)
+        loss_rep = model.reprojection_loss(pred["camera"], w, v)
+        loss_can = model.canonicalisation_loss(pred["canonical"])
+        loss = loss_rep + loss_can
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if not torch.isfinite(loss):
+            raise ValidationError(f"C3DPO: the loss became {loss.item()} at iteration {it}; lower the learning rate")
+        opt.step()
+        if (it + 1) % 100 == 0 or it == start:
+            history.append({"iteration": it + 1, "reprojection": loss_rep.item(), "canonicalisation": loss_can.item(),
+                            "lr": config.lr_at(it)})
+            bar.set_postfix(rep=f"{loss_rep.item():.3g}", can=f"{loss_can.item():.3g}")
+        bar.update(1)
+        if ckpt is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations):
+            _save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
+                   "history": history, "config": dataclasses.asdict(config), "numpy_rng": rng.bit_generator.state,
+                   "torch_rng": torch.get_rng_state()}, ckpt)
+    bar.close()
+    record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
+              "history": history[-5:]}
+    if out is not None:
+        _save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
+              out / "model.pt")
+        (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), **record}, indent=2))
+    return model.eval(), record
+
+
+def _save(obj: dict, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def load_c3dpo(path: str | os.PathLike, device: str = "auto") -> C3DPO:
+    """The model written by :func:`train_c3dpo` (``model.pt``)."""
+    state = torch.load(Path(path), map_location=pick_device(device), weights_only=False)
+    model = C3DPO(state["n_points"], C3DPOConfig(**state["config"]))
+    model.load_state_dict(state["model"])
+    return model.to(pick_device(device)).eval()
+
+
+@torch.no_grad()
+def predict_c3dpo(model: C3DPO, inputs: np.ndarray, weights: np.ndarray, batch: int = 4096) -> np.ndarray:
+    """`(N, P, 3)` shapes for `(N, P, 2)` normalised keypoints: the input's image coordinates where a point is
+    visible (the network's reprojection elsewhere) and the network's depth."""
+    model.eval()
+    device = next(model.parameters()).device
+    out = []
+    for s in range(0, len(inputs), batch):
+        x, v = inputs[s:s + batch], weights[s:s + batch]
+        w = torch.as_tensor(_centre(x, v), dtype=torch.float32, device=device)
+        vis = torch.as_tensor(v > 0, dtype=torch.float32, device=device)
+        cam = model(w, vis)["camera"]  # (n, 3, P)
+        xy = vis[:, None] * w + (1 - vis[:, None]) * cam[:, :2]
+        out.append(torch.cat([xy, cam[:, 2:]], dim=1).transpose(1, 2).double().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))

@@ -1,0 +1,82 @@
+"""The PRN-FCN network trained with a supervised 3D loss: the "+NN" rows (pseudo-labels) and the "GT 3D" row.
+
+The network, its width, input normalisation, optimiser, learning-rate schedule, batch-norm freeze and checkpoints
+are PRN-FCN's (:mod:`prn.train`); only the loss changes: the mean squared 3D error of the predicted `(P, 3)`
+shape against the target, over minibatches of ``batch`` frames drawn uniformly from the labelled training frames.
+Targets are normalised as the PRN protocol normalises ground truth: centred on the joints' mean and divided by
+their own xy Frobenius norm (:func:`prn.data.normalize_3d`), so predictions are scaled back to millimetres by the
+test ground truth's xy norm exactly like PRN's.
+
+Frames without a label (their NRSfM cut failed) are left out.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nrsfm.errors import ValidationError
+from nrsfm.sequence import Sequence
+from prn.data import TrainingSet, build_training_set, normalize_3d
+from prn.train import TrainConfig, TrainResult, train
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Supervised3D:
+    """The supervised objective (:class:`prn.train.Objective`).
+
+    Attributes:
+        targets: `(N, P, 3)` normalised target shapes, one per training frame (NaN: unlabelled).
+        batch: frames per minibatch (PRN's 128 = 4 groups x 32).
+    """
+
+    targets: np.ndarray
+    batch: int = 128
+
+    def __post_init__(self) -> None:
+        self.labelled = np.flatnonzero(np.isfinite(self.targets).all(axis=(1, 2)))
+        if not len(self.labelled):
+            raise ValidationError("Supervised3D: no training frame has a label (every NRSfM cut failed)")
+        self._targets = torch.as_tensor(np.nan_to_num(self.targets), dtype=torch.float32)
+
+    def to(self, device: torch.device) -> "Supervised3D":
+        self._targets = self._targets.to(device)
+        return self
+
+    def sample(self, rng: np.random.Generator) -> np.ndarray:
+        return rng.choice(self.labelled, size=self.batch, replace=len(self.labelled) < self.batch)
+
+    def loss(self, pred: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        return ((pred - self._targets[idx]) ** 2).sum(dim=2).mean()
+
+
+def normalised_targets(shapes: list[np.ndarray]) -> np.ndarray:
+    """`(N, P, 3)` targets from per-sequence `(F, P, 3)` shapes (NaN frames stay NaN): :func:`normalize_3d`."""
+    out = []
+    for s in shapes:
+        t = np.full(s.shape, np.nan)
+        ok = np.isfinite(s).all(axis=(1, 2))
+        if ok.any():
+            t[ok] = normalize_3d(s[ok])[0]
+        out.append(t)
+    return np.concatenate(out)
+
+
+def train_supervised(inputs: list[Sequence], shapes: list[np.ndarray], config: TrainConfig,
+                     out_dir: str | os.PathLike | None, *, targets_2d: list[Sequence] | None = None,
+                     resume: bool = True, progress: bool = True) -> tuple[TrainResult, TrainingSet]:
+    """Train PRN-FCN on ``inputs`` to predict ``shapes`` (per sequence `(F, P, 3)`, camera frame; NaN frames are
+    skipped). Returns the training result and the :class:`~prn.data.TrainingSet` (its input normalisation is
+    the one to apply to test inputs)."""
+    if len(shapes) != len(inputs):
+        raise ValidationError(f"shapes: expected one array per input sequence ({len(inputs)}), got {len(shapes)}")
+    data = build_training_set(inputs, targets_2d, sampling="random")
+    objective = Supervised3D(normalised_targets(shapes), batch=config.groups * config.group_size)
+    log.info("supervised 3D: %d of %d training frames labelled", len(objective.labelled), len(data.inputs))
+    return train(data, config, out_dir, resume=resume, progress=progress, objective=objective), data

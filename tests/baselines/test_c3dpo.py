@@ -1,0 +1,64 @@
+"""C3DPO: the canonicalisation loss, the pseudo-Huber reprojection, training and prediction."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from baselines.c3dpo import C3DPO, C3DPOConfig, predict_c3dpo, pseudo_huber, random_rotations, train_c3dpo
+from nrsfm.datasets.synthetic import lowrank_sequence
+from nrsfm.procrustes import rotation_exp
+
+SMALL = C3DPOConfig(basis=3, width=64, n_layers=1, iterations=30, batch=32, checkpoint_every=10)
+
+
+def test_canonicalisation_loss_is_zero_for_a_canonical_shape_and_positive_for_a_rotated_copy(monkeypatch):
+    torch.manual_seed(0)
+    model = C3DPO(12, SMALL)
+    canonical = torch.randn(1, 3, 12, dtype=torch.float32)
+    canonical = canonical - canonical.mean(dim=2, keepdim=True)
+    # a perfect canonicaliser of this shape's orbit: whatever rotation it sees, it returns the canonical shape
+    monkeypatch.setattr(model, "canonicalise", lambda shapes: canonical.expand(len(shapes), -1, -1))
+    floor = pseudo_huber(torch.zeros(()), SMALL.huber)  # the loss of an exact match (its 1e-4 smoothing)
+    assert float(model.canonicalisation_loss(canonical)) == pytest.approx(float(floor), abs=1e-9)
+    assert float(floor) < 1e-6
+    turned = rotation_exp(torch.tensor([[0.0, 0.0, math.pi / 2]])) @ canonical
+    assert float(model.canonicalisation_loss(turned)) > 100 * float(floor)
+
+
+def test_pseudo_huber_is_quadratic_near_zero_and_linear_far_away():
+    c = 0.01
+    small, large = torch.tensor(1e-8), torch.tensor(1.0)
+    assert float(pseudo_huber(small, c)) == pytest.approx(small / (2 * c) + float(pseudo_huber(torch.zeros(()), c)),
+                                                          rel=1e-3)
+    assert float(pseudo_huber(large, c)) == pytest.approx(1.0 - c, rel=1e-3)
+
+
+def test_random_rotations_are_proper_and_respect_the_axis_mask():
+    r = random_rotations(50, math.pi / 8, (0.0, 0.0, 1.0), like=torch.zeros(1, dtype=torch.float64))
+    np.testing.assert_allclose(torch.linalg.det(r).numpy(), 1.0, atol=1e-12)
+    np.testing.assert_allclose(r[:, 2, 2].numpy(), 1.0, atol=1e-12)  # about the optical axis only
+    assert float(torch.arccos(r[:, 0, 0].clamp(-1, 1)).max()) <= math.pi / 8 + 1e-9
+
+
+def test_c3dpo_trains_resumes_and_keeps_the_input_coordinates(tmp_path):
+    seq = lowrank_sequence(200, 12, 2, seed=0)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    x = x / np.linalg.norm(x.reshape(len(x), -1), axis=1)[:, None, None]
+    w = np.ones(x.shape[:2])
+    w[::7, 3] = 0.0  # a few missing points
+    model, record = train_c3dpo(x, w, SMALL, tmp_path, progress=False)
+    assert record["iterations_run"] == 30 and (tmp_path / "model.pt").exists()
+    hist = record["history"]
+    assert all(np.isfinite(h["reprojection"]) and np.isfinite(h["canonicalisation"]) for h in hist)
+    again, record2 = train_c3dpo(x, w, SMALL, tmp_path, progress=False)  # the checkpoint is at the end: no work
+    assert record2["iterations_run"] == 0
+    pred = predict_c3dpo(model, x[:20], w[:20])
+    assert pred.shape == (20, 12, 3) and np.isfinite(pred).all()
+    seen = w[:20] > 0
+    np.testing.assert_allclose(pred[..., :2][seen], (x[:20] - (x[:20] * w[:20, :, None]).sum(1, keepdims=True)
+                                                     / w[:20].sum(1)[:, None, None])[seen], atol=1e-6)
+    with pytest.raises(ValueError, match="another configuration"):
+        train_c3dpo(x, w, C3DPOConfig(basis=4, width=64, n_layers=1, iterations=30, batch=32), tmp_path,
+                    progress=False)

@@ -1,0 +1,93 @@
+"""The pseudo-label pipeline: cuts, solves, the cache and its resume, the Dask backend, reflections."""
+
+import numpy as np
+import pytest
+
+import baselines.labels as labels
+from baselines.labels import make_labels, multiview_cuts, resolve_reflections, solve_cuts
+from nrsfm.datasets.synthetic import human_sequences
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """One subject's two motions seen by the 4 ring cameras, 30 frames at 10 fps (orthographic)."""
+    return human_sequences(("S1",), ("walking", "bending"), projection="orthographic", n_frames=30, takes=1)
+
+
+def test_cuts_hold_every_frame_and_camera_once_with_the_camera_cycling(walk):
+    cuts = multiview_cuts(walk, gap=5)
+    assert len(cuts) == 2 * 5 * 4  # recordings x offsets x camera phases
+    seen = np.zeros((len(walk), 30), int)
+    for cut in cuts:
+        i, t = cut.sources.T
+        seen[i, t] += 1
+        assert np.all(np.diff(t) == 5)
+        cams = [walk[j].meta["camera"] for j in i]
+        assert all(int(b) == int(a) % 4 + 1 for a, b in zip(cams, cams[1:]))  # 1, 2, 3, 4, 1, ...
+        np.testing.assert_array_equal(cut.sequence.points_2d, np.stack([walk[j].points_2d[f] for j, f in zip(i, t)]))
+        assert cut.sequence.points_3d is None  # the solver sees 2D only
+    assert (seen == 1).all()
+
+
+def test_reflections_are_resolved_to_one_handedness_without_ground_truth():
+    """True camera-frame shapes of six motions (upright, bending, sitting, ...), 40% of the cuts mirrored: every
+    cut ends with one handedness, though the poses change the sign of most 4-point volumes."""
+    seqs = human_sequences(("S1", "S5"), projection="orthographic", n_frames=30, takes=1)
+    cuts = multiview_cuts(seqs)[::2]
+    shapes = [np.stack([seqs[i].points_3d[t] for i, t in c.sources]) for c in cuts]
+    mirrored = np.random.default_rng(1).random(len(shapes)) < 0.4
+    flips = resolve_reflections([s * np.array([1, 1, -1]) if m else s for s, m in zip(shapes, mirrored)])
+    np.testing.assert_array_equal(flips, mirrored)
+    assert not resolve_reflections([np.full((4, 17, 3), np.nan)]).any()
+
+
+def test_label_pipeline_resumes_and_records_failures(walk, tmp_path, monkeypatch):
+    cuts = multiview_cuts(walk[:4], gap=5)  # one recording: 20 cuts of 6 frames
+    calls = []
+    real = labels._solve_cut
+
+    def counted(*args):
+        calls.append(args[2])
+        if len(calls) == 7 and not hasattr(counted, "interrupted"):
+            counted.interrupted = True
+            raise KeyboardInterrupt  # an interruption after 6 finished cuts
+        return real(*args)
+
+    monkeypatch.setattr(labels, "_solve_cut", counted)
+    with pytest.raises(KeyboardInterrupt):
+        solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)
+    calls.clear()
+    shapes, failed, reused = solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)
+    assert reused == 6 and len(calls) == 14  # only the unfinished cuts are solved
+    assert not failed and all(np.isfinite(s).all() for s in shapes)
+    calls.clear()
+    assert solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)[2] == 20 and not calls
+    # a solver that refuses the input: recorded, never replaced
+    bad, failed, _ = solve_cuts(cuts[:2], "csf2", {"K": 7}, out_dir=tmp_path, dataset="walk", progress=False)
+    assert len(failed) == 2 and "K = 7" in next(iter(failed.values())) and np.isnan(bad[0]).all()
+
+
+def test_labels_end_to_end_and_the_dask_backend_gives_the_same(walk, tmp_path):
+    result = make_labels(walk, "csf2", out_dir=tmp_path / "local", dataset="walk", progress=False)
+    s = result.summary
+    assert s["cuts"] == 40 and s["failed"] == 0 and s["labelled_frames"] == s["frames"] == 240
+    assert s["label_mpjpe"] < 150  # mm, PRN protocol; the subject is about 1.7 m tall
+    pytest.importorskip("distributed")
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        other = make_labels(walk, "csf2", out_dir=tmp_path / "dask", dataset="walk", backend="dask",
+                            scheduler=cluster.scheduler_address, progress=False)
+    for a, b in zip(result.labels, other.labels):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
+def test_labels_refuse_perspective_tracks_and_unknown_settings(walk, tmp_path):
+    persp = human_sequences(("S1",), ("walking",), projection="perspective", n_frames=10, takes=1)
+    with pytest.raises(ValueError, match="orthographic"):
+        make_labels(persp, "csf2", out_dir=tmp_path, dataset="p", progress=False)
+    with pytest.raises(ValueError, match="no parameter 'k'"):
+        solve_cuts(multiview_cuts(walk[:4]), "csf2", {"k": 3}, out_dir=tmp_path, dataset="w", progress=False)
+    with pytest.raises(ValueError, match="backend"):
+        solve_cuts(multiview_cuts(walk[:4]), "csf2", out_dir=tmp_path, dataset="w", backend="ray", progress=False)
