@@ -61,6 +61,7 @@ class RunContext:
     retrain: bool = False
     jobs: int = 1
     c3dpo_batch: int = 1024
+    c3dpo_iterations: int | None = None
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

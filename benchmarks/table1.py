@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from collections import defaultdict
@@ -74,23 +75,24 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
     if args.data == "synthetic":
         from nrsfm.datasets.synthetic import SUBJECTS, human_sequences
 
-        frames = 80 if args.quick else SYNTHETIC_FRAMES
+        frames = 60 if args.quick else SYNTHETIC_FRAMES
+        takes = 1 if args.quick else 2
         train_s, test_s = h36m.TRAIN_SUBJECTS, h36m.TEST_SUBJECTS
         assert set(train_s + test_s) <= set(SUBJECTS)
         desc = {"data": "synthetic", "train_subjects": list(train_s), "test_subjects": list(test_s),
-                "frames_per_clip": frames, "fps": 10, "takes": 2}
+                "frames_per_clip": frames, "fps": 10, "takes": takes}
         splits = {}
         for inp in inputs:
             kw = {"projection": "orthographic" if inp == "gt-ortho" else "perspective", "n_frames": frames,
-                  "takes": 2, "seed": args.seed}
+                  "takes": takes, "seed": args.seed}
             tr = human_sequences(train_s, **kw)
             te = human_sequences(test_s, **kw)
             if inp == "sh":  # detector-like noise, and no Neck/Nose detection (16 of 17 points), as SH
                 tr_in = [_drop_neck(s) for s in human_sequences(train_s, noise=8.0, **kw)]
                 te_in = [_drop_neck(s) for s in human_sequences(test_s, noise=8.0, **kw)]
-                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"synthetic-{frames}-{args.seed}-sh")
+                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"synthetic-{frames}-{takes}-{args.seed}-sh")
             else:
-                splits[inp] = Split(tr, tr, te, te, inp, tag=f"synthetic-{frames}-{args.seed}-{inp}")
+                splits[inp] = Split(tr, tr, te, te, inp, tag=f"synthetic-{frames}-{takes}-{args.seed}-{inp}")
         return splits, desc
     from nrsfm.datasets import find_dataset
 
@@ -172,8 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps "
                                                     "copies, auto to detect")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--jobs", type=int, default=1, help="parallel solves of the pseudo-label pipeline (one BLAS "
-                                                       "thread each)")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="parallel solves of the pseudo-label pipeline, one BLAS thread each (default: every core)")
+    p.add_argument("--c3dpo-iterations", type=int, default=None,
+                   help="C3DPO's iterations (default: its 90-epoch schedule scaled as --iterations scales PRN's 70k)")
     p.add_argument("--c3dpo-batch", type=int, default=None, help="C3DPO's minibatch (default: the authors' 1024; "
                                                                    "128 with --quick)")
     p.add_argument("--device", default="auto")
@@ -208,10 +212,13 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}")
     if args.c3dpo_batch is None:
         args.c3dpo_batch = 128 if args.quick else 1024
+    if args.c3dpo_iterations is not None and args.c3dpo_iterations < 1:
+        raise ValidationError(f"--c3dpo-iterations: expected >= 1, got {args.c3dpo_iterations}")
     if args.jobs < 1 or args.c3dpo_batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {args.c3dpo_batch}")
     ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
-                     device=args.device, retrain=args.retrain, jobs=args.jobs, c3dpo_batch=args.c3dpo_batch)
+                     device=args.device, retrain=args.retrain, jobs=args.jobs, c3dpo_batch=args.c3dpo_batch,
+                     c3dpo_iterations=args.c3dpo_iterations)
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
