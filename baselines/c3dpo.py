@@ -45,6 +45,7 @@ from torch import nn
 from nrsfm.device import pick_device
 from nrsfm.errors import ValidationError
 from nrsfm.procrustes import rotation_exp
+from prn.train import atomic_save
 
 log = logging.getLogger(__name__)
 
@@ -258,23 +259,17 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
             bar.set_postfix(rep=f"{loss_rep.item():.3g}", can=f"{loss_can.item():.3g}")
         bar.update(1)
         if ckpt is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations):
-            _save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
+            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                    "history": history, "config": dataclasses.asdict(config), "numpy_rng": rng.bit_generator.state,
                    "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
               "history": history[-5:]}
     if out is not None:
-        _save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
+        atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
               out / "model.pt")
         (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), **record}, indent=2))
     return model.eval(), record
-
-
-def _save(obj: dict, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def load_c3dpo(path: str | os.PathLike, device: str = "auto") -> C3DPO:

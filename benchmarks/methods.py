@@ -1,4 +1,5 @@
-"""The built-in rows: PRN-FCN and PRN without regularisation (lambda = 0)."""
+"""The built-in rows: PRN-FCN, PRN without regularisation (lambda = 0), the "+NN" baselines on pseudo-labels,
+GT 3D and C3DPO."""
 
 from __future__ import annotations
 
@@ -57,14 +58,13 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     """PRN-FCN trained on ``shapes`` with the supervised 3D loss (:mod:`baselines.supervised`), cached by
     configuration and ``key`` (what the shapes are), then run on the test inputs."""
     from baselines.supervised import train_supervised
+    from prn.data import build_training_set
     from prn.train import load_model, predict
 
     config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device)
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "targets": key})
     model_path = cache / "model.pt"
-    from prn.data import build_training_set
-
     if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)

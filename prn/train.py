@@ -95,7 +95,8 @@ def _freeze_bn_stats(model: torch.nn.Module) -> None:
             m.eval()  # running statistics frozen; affine scale/shift still trained
 
 
-def _atomic_save(obj: dict, path: Path) -> None:
+def atomic_save(obj: dict, path: Path) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then renamed onto it."""
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
@@ -242,7 +243,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             bar.set_postfix(loss=f"{history[-1]['loss']:.4g}")
         bar.update(1)
         if ckpt_path is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == end):
-            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
+            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                           "history": history, "config": dataclasses.asdict(config),
                           "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
                           "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}, ckpt_path)
@@ -250,7 +251,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     seconds = time.perf_counter() - t_begin
     run = max(end - start, 0)
     if out is not None and end == config.iterations:
-        _atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": data.n_points,
+        atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": data.n_points,
                       "n_inputs": data.n_inputs, "history": history}, out / "model.pt")
         (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), "seconds": seconds,
                                                     "iterations_run": run, "data": data.description,
