@@ -67,6 +67,9 @@ PAPER = {
 }
 INPUTS = ("gt-ortho", "gt-persp", "sh")
 SYNTHETIC_FRAMES = 200
+QUICK_FRAMES = 60
+#: The stand-in's motion families (None: all of them).
+SYNTHETIC_MOTIONS: tuple[str, ...] | None = None
 
 
 # --------------------------------------------------------------------------- data
@@ -75,7 +78,7 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
     if args.data == "synthetic":
         from nrsfm.datasets.synthetic import SUBJECTS, human_sequences
 
-        frames = 60 if args.quick else SYNTHETIC_FRAMES
+        frames = QUICK_FRAMES if args.quick else SYNTHETIC_FRAMES
         takes = 1 if args.quick else 2
         train_s, test_s = h36m.TRAIN_SUBJECTS, h36m.TEST_SUBJECTS
         assert set(train_s + test_s) <= set(SUBJECTS)
@@ -85,6 +88,8 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
         for inp in inputs:
             kw = {"projection": "orthographic" if inp == "gt-ortho" else "perspective", "n_frames": frames,
                   "takes": takes, "seed": args.seed}
+            if SYNTHETIC_MOTIONS is not None:
+                kw["motions"] = SYNTHETIC_MOTIONS
             tr = human_sequences(train_s, **kw)
             te = human_sequences(test_s, **kw)
             if inp == "sh":  # detector-like noise, and no Neck/Nose detection (16 of 17 points), as SH

@@ -238,8 +238,10 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                                 "or check the inputs for NaN")
         opt.step()
         if (it + 1) % log_every == 0 or it == start:
-            history.append({"iteration": it + 1, "loss": loss.item(), "data": parts.data, "nuclear": parts.nuclear,
-                            "lr": config.lr_at(it)})
+            entry = {"iteration": it + 1, "loss": loss.item(), "lr": config.lr_at(it)}
+            if objective is None:  # the PR loss's two terms
+                entry.update(data=parts.data, nuclear=parts.nuclear)
+            history.append(entry)
             bar.set_postfix(loss=f"{history[-1]['loss']:.4g}")
         bar.update(1)
         if ckpt_path is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == end):

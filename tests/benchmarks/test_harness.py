@@ -26,7 +26,8 @@ def _tiny_cmu_file(tmp_path, seq):
 def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
     out = tmp_path / "t1"
-    args = ["--iterations", "12", "--out", str(out), "--no-progress", "--input", "gt-ortho"]
+    args = ["--iterations", "12", "--out", str(out), "--no-progress", "--input", "gt-ortho", "--methods",
+            "PRN-FCN,PRN w/o reg"]
     assert table1.main(args) == 0
     text = capsys.readouterr().out
     assert "| PRN-FCN (ours) |" in text and "| PRN w/o reg (ours) |" in text and "144.8" in text
@@ -40,6 +41,27 @@ def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monke
     assert table1.main(args) == 0
     meta = json.loads((out / "meta.json").read_text())
     assert all(t["cached"] for t in meta["timings"].values())
+
+
+def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, monkeypatch):
+    """Every baseline row gets a number on a small stand-in (two training subjects, one motion, 20 frames: too
+    short for PRN's groups, whose rows the test above runs)."""
+    monkeypatch.setattr(table1, "QUICK_FRAMES", 20)
+    monkeypatch.setattr(table1, "SYNTHETIC_MOTIONS", ("walking",))
+    monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1", "S5"))
+    out = tmp_path / "t1"
+    rows = "CSF2 + NN,SPM + NN,PR + NN,GT 3D,C3DPO"
+    assert table1.main(["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
+                        "--methods", rows]) == 0
+    text = capsys.readouterr().out
+    data = json.loads((out / "table1.json").read_text())
+    avg = {(r["method"], r["input"]): r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"]}
+    for name in rows.split(","):
+        assert np.isfinite(avg[(name, "gt-ortho")]), name
+    assert "not implemented" not in text and "Pseudo-labels" in text and "C3DPO's own protocol" in text
+    assert "PRN-FCN (paper; not selected with --methods)" in text
+    labels = data["meta"]["timings"]["CSF2 + NN (gt-ortho)"]["labels"]
+    assert labels["cuts"] == 2 * 20 and labels["labelled_frames"] + 4 * labels["failed"] >= labels["frames"]
 
 
 def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
