@@ -375,7 +375,7 @@ def _training_sequences(args: argparse.Namespace) -> tuple[list[Sequence], str]:
         from nrsfm.datasets.synthetic import human_sequences
 
         return (human_sequences(h36m.TRAIN_SUBJECTS, projection="orthographic", n_frames=200, takes=2),
-                "synthetic-200-0-gt-ortho")
+                "synthetic-200-2-0-gt-ortho")
     subjects = [s for s in h36m.TRAIN_SUBJECTS if (root / s).is_dir()]
     if not subjects:
         raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS}, found none")
