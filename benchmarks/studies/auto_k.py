@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # the noisy ladder of noise_visible_rank takes seconds a sequence with missing entries: in parallel
     info = dict(zip(jobs, Parallel(n_jobs=args.jobs)(delayed(rank_info)(j, missing) for j in jobs)))
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
 
     def label_and_identity(job: str) -> tuple[str, dict]:  # the cells' file name; a file's path and bytes
         if file_job(job) is None:

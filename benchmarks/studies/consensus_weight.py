@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     args, folder, files, (methods, grid) = parsed
     t0 = time.perf_counter()
     out = Path(args.out or f"runs/consensus_weight{'-missing' + str(args.missing) if args.missing else ''}")
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
     key = {"methods": methods, "grid": grid, "missing": args.missing}
     cells = [(f"{Path(f).stem}-{config_hash(key)}", {**job_identity(f), **key, "code": code},
               (f, methods, grid, args.missing)) for f in files]

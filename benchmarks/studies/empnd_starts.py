@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     log.info("empnd_starts: %d sequences x %d starts, %d jobs", len(files), len(starts), args.jobs)
     out = Path(args.out)
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
     cells = [(f"{Path(f).stem}-{config_hash({'starts': starts})}", {**job_identity(f), "starts": starts,
                                                                      "code": code}, (f, starts)) for f in files]
     done = run_cells_from_args(args, cells, run_one, out, "empnd_starts")

@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     log.info("pr_sweep: %d sequences x %d configurations, %d jobs", len(files), len(CONFIGS), args.jobs)
     out = Path(args.out)
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
     identity = {f: job_identity(f) for f in files}
     cells = [(f"{Path(f).stem}-{config_hash({'label': label})}", {**identity[f], "config": cfg, "code": code},
               (f, label, cfg)) for f in files for label, cfg in CONFIGS]

@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     out = Path(args.out)
     key = {"lams": lams, "iters": args.iters, "starts": args.starts}
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
     cells = [(f"{Path(f).stem}-{config_hash(key)}", {**job_identity(f), **key, "code": code},
               (f, lams, args.iters, args.starts)) for f in files]
     done = run_cells_from_args(args, cells, run_one, out, "spm_cameras")

@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     out = Path(args.out)
     jobs = [f"synthetic:{f}{noise}" for f in frames for noise in ("", ":0.01")] + files
-    code = code_hash(__file__, Path(__file__).with_name("classic.py"))
+    code = code_hash(__file__, Path(__file__).parent.parent / "classic.py")
     cells = [(f"{Path(j).stem if j.endswith('.mat') else j.replace(':', '-')}-{o}",
               {**job_identity(j), "objective": o, "code": code}, (j, o)) for j in jobs for o in OBJECTIVES]
     done = run_cells_from_args(args, cells, run_one, out, "spm_shape")
