@@ -122,3 +122,11 @@ def test_real_loader_split_and_shapes(h36m_dir):
         assert s.n_points == 17 and s.points_3d[..., 2].min() > 1000  # in front of the camera, mm
         bones = np.linalg.norm(s.points_3d[:, 1] - s.points_3d[:, 2], axis=1)  # RHip-RKnee
         assert bones.std() < 1.0  # a rigid bone in real mocap
+
+
+def test_world_loader_gives_the_files_world_frame(fake_h36m):
+    root, _, world, cams, _ = fake_h36m
+    np.testing.assert_allclose(h36m.load_h36m_world(root, "S9", "Walking 1", stride=1), world, atol=1e-9)
+    np.testing.assert_allclose(h36m.load_h36m_world(root, 9, "Walking 1", stride=2), world[::2], atol=1e-9)
+    with pytest.raises(FileNotFoundError, match="known for S9"):
+        h36m.load_h36m_world(root, "S9", "Eating", stride=1)

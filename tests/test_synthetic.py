@@ -91,3 +91,25 @@ def test_bad_arguments():
                  lambda n: human_sequences(("S1",), ("walking",), (1,), n_frames=n)):
         with pytest.raises(ValueError, match="expected n_frames >= 1, got 0"):
             make(0)
+
+
+def test_orbit_sequence_turns_the_camera_about_the_vertical_axis():
+    from nrsfm.datasets.synthetic import human_motion, orbit_sequence
+
+    world = human_motion("S1", "walking", 40, seed=0)  # (F, 17, 3), y up
+    seq = orbit_sequence(world, 90.0, up=1, elevation_deg=0.0, name="orbit")
+    rot = seq.camera_rotations
+    np.testing.assert_allclose(np.einsum("fij,fkj->fik", rot, rot), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0)
+    np.testing.assert_allclose(seq.points_2d, seq.points_3d[..., :2])
+    # the camera's up is the world's up at zero elevation, and the view turns by 90 degrees over the sequence
+    np.testing.assert_allclose(rot[:, 1], np.broadcast_to([0.0, 1.0, 0.0], (40, 3)), atol=1e-12)
+    np.testing.assert_allclose(abs(rot[0, 2] @ rot[-1, 2]), 0.0, atol=1e-12)
+    # a z-up copy of the same motion gives the same sequence
+    z_up = world[..., [0, 2, 1]] * np.array([1.0, -1.0, 1.0])
+    np.testing.assert_allclose(orbit_sequence(z_up, 90.0, up=2, elevation_deg=0.0).points_3d, seq.points_3d,
+                               atol=1e-9)
+    from nrsfm.errors import ValidationError
+
+    with pytest.raises(ValidationError, match="up"):
+        orbit_sequence(world, 30.0, up=0)

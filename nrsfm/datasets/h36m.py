@@ -153,14 +153,25 @@ def load_h36m_sequence(root: str | os.PathLike, subject: str | int, action: str,
         raise ValidationError(f"camera: expected 1, 2, 3 or 4, got {camera!r}")
     if stride < 1:
         raise ValidationError(f"stride: expected a positive integer, got {stride}")
-    import h5py
-
     root = Path(root)
     subj = _subject_key(subject)
     cams = cameras if cameras is not None else load_cameras(root / "cameras.h5")
     if (subj, camera) not in cams:
         raise DataFormatError(f"cameras.h5: expected subject{subj[1:]}/camera{camera}, not present")
     cam = cams[(subj, camera)]
+    world = load_h36m_world(root, subj, action, stride=stride)  # (F, 17, 3)
+    cam3d = cam.world_to_camera(world)  # (F, 17, 3)
+    return _make_sequence(cam3d, cam, input, lambda: _read_sh(root, subj, action, camera, stride),
+                          name=f"{subj}/{action}/cam{camera}", subject=subj, action=action, camera=camera,
+                          fps=source_fps / stride)
+
+
+def load_h36m_world(root: str | os.PathLike, subject: str | int, action: str, *, stride: int = 5) -> np.ndarray:
+    """The 17 joints of one subject / sub-action in Human3.6M's world frame: `(F, 17, 3)` mm, z up, every
+    ``stride``-th frame."""
+    import h5py
+
+    root, subj = Path(root), _subject_key(subject)
     f3d = root / subj / "MyPoses" / "3D_positions" / f"{action}.h5"
     if not f3d.exists():
         raise FileNotFoundError(f"{f3d}: no such file (known for {subj}: {list_actions(root, subj)})")
@@ -168,11 +179,7 @@ def load_h36m_sequence(root: str | os.PathLike, subject: str | int, action: str,
         raw = np.asarray(h5["3D_positions"][()], dtype=np.float64)  # (96, F)
     if raw.ndim != 2 or raw.shape[0] != 96:
         raise DataFormatError(f"{f3d}: 3D_positions: expected (96, F), got {raw.shape}")
-    world = raw.T.reshape(-1, 32, 3)[::stride][:, JOINTS_32_TO_17]  # (F, 17, 3)
-    cam3d = cam.world_to_camera(world)  # (F, 17, 3)
-    return _make_sequence(cam3d, cam, input, lambda: _read_sh(root, subj, action, camera, stride),
-                          name=f"{subj}/{action}/cam{camera}", subject=subj, action=action, camera=camera,
-                          fps=source_fps / stride)
+    return raw.T.reshape(-1, 32, 3)[::stride][:, JOINTS_32_TO_17]
 
 
 def _read_sh(root: Path, subj: str, action: str, camera: int, stride: int) -> np.ndarray:

@@ -11,6 +11,9 @@
   deformation and head rotation. The stand-in for 300-VW.
 - :func:`surface_sequence`: a dense deforming surface with thousands of points
   turning about the vertical axis. The stand-in for SURREAL.
+- :func:`orbit_sequence`: any world-frame motion (real motion capture
+  included) seen by an orthographic camera turning about the vertical axis:
+  an NRSfM sequence with known 3D and cameras.
 
 Randomness: every generator takes ``seed`` (int); per-sequence streams are
 derived from the seed and the sequence's name, so a sequence does not change
@@ -428,3 +431,30 @@ def drop_entries(seq: Sequence, fraction: float) -> Sequence:
     vis = seq.weights.copy()
     vis[rng.random(vis.shape) < fraction] = 0.0
     return seq.replace(visibility=vis)
+
+
+def orbit_sequence(world: np.ndarray, turn_deg: float, *, up: int = 1, elevation_deg: float = 15.0,
+                   start_deg: float = 0.0, name: str = "orbit", **sequence_fields) -> Sequence:
+    """World-frame points ``world`` `(F, P, 3)` seen by an orthographic camera that turns steadily about the
+    vertical axis (``up``: 1 for y up, 2 for z up, as Human3.6M's world) from ``start_deg`` by ``turn_deg``
+    over the sequence, looking ``elevation_deg`` down at the subject.
+
+    Returns:
+        A :class:`Sequence` with ``points_3d`` `(F, P, 3)` in the camera frame (about the centroid of the
+        whole motion, so the subject's own displacement stays in the 2D), ``camera_rotations`` `(F, 3, 3)`
+        (world to camera) and ``sequence_fields`` (``joint_names``, ``edges``, ``meta``, ...).
+    """
+    world = np.asarray(world, dtype=np.float64)
+    if world.ndim != 3 or world.shape[2] != 3:
+        raise ValidationError(f"world: expected (F, P, 3) points, got shape {world.shape}")
+    if up not in (1, 2):
+        raise ValidationError(f"up: expected 1 (y up) or 2 (z up), got {up!r}")
+    n_frames = world.shape[0]
+    # a camera frame (x right, y up, z towards the viewer) of a y-up world, for a z-up one first turned to y up
+    to_y_up = np.eye(3) if up == 1 else np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    yaw = np.deg2rad(start_deg + turn_deg * np.linspace(0.0, 1.0, n_frames))
+    rot = (Rotation.from_euler("x", -elevation_deg, degrees=True) * Rotation.from_euler("y", yaw[:, None])).as_matrix()
+    rot = rot @ to_y_up  # (F, 3, 3)
+    cam = np.einsum("fij,fpj->fpi", rot, world - world.reshape(-1, 3).mean(axis=0))  # (F, P, 3)
+    return Sequence(points_2d=cam[..., :2].copy(), points_3d=cam, camera_rotations=rot, name=name,
+                    **sequence_fields)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, table1
+from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, run_cells
 from benchmarks.studies import auto_k, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape
 from nrsfm import solve
@@ -341,3 +341,29 @@ def test_classic_reuses_saved_cells_unless_the_file_changes_or_rerun(tmp_path, c
     assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 0
     assert classic.main(argv + ["--rerun"]) == 0
     assert json.loads((out / "classic.json").read_text())["meta"]["cells_reused"] == 0
+
+
+def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    monkeypatch.setattr(defaults, "N_FRAMES", 30)
+    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:2])
+    monkeypatch.setattr(defaults, "FACES", (1,))
+    out = tmp_path / "d"
+    args = ["--methods", "csf2,rank3", "--k-max", "2", "--missing", "0,0.2", "--out", str(out), "--no-progress"]
+    assert defaults.main(args) == 0
+    text = capsys.readouterr().out
+    data = json.loads((out / "defaults.json").read_text())
+    names = {r["sequence"] for r in data["rows"]}
+    assert names == {"human-S1-walking-turn30", "human-S1-sitting_down-turn120", "face-1"}
+    # csf2: the default and K = 1, 2; rank3: its default only; both missing ratios
+    assert len(data["rows"]) == 3 * 2 * (3 + 1)
+    csf2 = [s for s in data["summary"] if s["method"] == "csf2"]
+    assert len(csf2) == 6
+    for s in csf2:
+        assert s["best_K"] in (1, 2)
+        np.testing.assert_allclose(s["ratio"], s["e3d_default"] / s["e3d_best"])
+    rank3 = [r for r in data["rows"] if r["method"] == "rank3"]
+    assert [r["status"] for r in rank3 if r["missing"] == 0] == ["ok"] * 3
+    assert all(r["status"] == "not run" for r in rank3 if r["missing"] > 0)  # needs complete tracks: said so
+    assert "csf2, 20% missing: default within 10% of the best fixed K on" in text
+    assert "not run:" in text
