@@ -10,11 +10,17 @@
 
 Bad input ends with one line on stderr and exit status 2 (no traceback).
 Existing output files are never overwritten without ``--force``.
+
+Threads: ``--threads N`` (default 1) caps numpy's BLAS/OpenMP pools (threadpoolctl) and torch's intra-op
+threads. The solvers' work is many small matrix products and decompositions, which gain little from a
+second thread on an idle machine and lose several-fold when another process holds a core (threads that
+spin-wait on the busy core); ``--threads 0`` leaves the libraries' own defaults.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -37,6 +43,9 @@ class _UsageError(Exception):
 def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="nrsfm", description="Non-rigid structure from motion toolbox.")
     p.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
+    p.add_argument("--threads", type=int, default=1,
+                   help="BLAS and torch threads (default 1: never stalls on a busy core; 0: the libraries' "
+                        "defaults)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
@@ -94,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                             format="%(levelname)s %(name)s: %(message)s")
-        return _COMMANDS[args.command](args)
+        if args.threads < 0:
+            raise _UsageError(f"nrsfm: --threads: expected 0 (the libraries' defaults) or a count >= 1, got "
+                              f"{args.threads} (see 'nrsfm --help')")
+        with _thread_limits(args.threads, torch_too=args.command in ("solve", "demo")):
+            return _COMMANDS[args.command](args)
     except _UsageError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -105,6 +118,29 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("nrsfm: interrupted", file=sys.stderr)
         return 130
+
+
+@contextlib.contextmanager
+def _thread_limits(threads: int, torch_too: bool):
+    """Cap BLAS/OpenMP pools at ``threads`` (0: no cap) and, for the commands that may run torch, torch's
+    intra-op threads, for the duration of a command; the previous counts are restored after it."""
+    if threads == 0:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    torch_before = None
+    if torch_too:
+        import torch
+
+        torch_before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+    try:
+        with threadpool_limits(limits=threads):
+            yield
+    finally:
+        if torch_before is not None:
+            torch.set_num_threads(torch_before)
 
 
 # --------------------------------------------------------------------------- commands

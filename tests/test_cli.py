@@ -186,3 +186,24 @@ def test_console_script_entry_point():
     res = subprocess.run([sys.executable, "-m", "nrsfm.cli", "solve", "/nonexistent.npz"], capture_output=True,
                          text=True)
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
+
+
+def test_threads_cap_the_pools_during_a_command_and_bad_counts_are_refused(tmp_path, capsys, monkeypatch):
+    from threadpoolctl import threadpool_info
+
+    import nrsfm.cli as cli
+
+    path = lowrank_sequence(40, 12, 2, seed=1).save(tmp_path / "seq.npz")
+    seen = {}
+
+    def spy(args):  # what the command sees
+        seen["blas"] = [p["num_threads"] for p in threadpool_info()]
+        return 0
+
+    monkeypatch.setitem(cli._COMMANDS, "info", spy)
+    assert _run(capsys, "--threads", "1", "info", str(path))[0] == 0
+    assert seen["blas"] and max(seen["blas"]) == 1
+    code, _, err = _run(capsys, "--threads", "-1", "info", str(path))
+    assert code == 2 and "--threads" in err and len(err.strip().splitlines()) == 1
+    code, out, _ = _run(capsys, "--threads", "0", "solve", str(path), "-m", "csf2", "--json")
+    assert code == 0 and json.loads(out)["method"] == "csf2"
