@@ -207,8 +207,8 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     if start >= config.phase_boundary:
         _freeze_bn_stats(model)
     t_begin = time.perf_counter()
-    bar = tqdm(total=config.iterations, initial=start, desc=f"PRN lam={config.lam}", disable=not progress,
-               mininterval=2.0)
+    desc = f"PRN lam={config.lam}" if objective is None else type(objective).__name__
+    bar = tqdm(total=config.iterations, initial=start, desc=desc, disable=not progress, mininterval=2.0)
     end = config.iterations if stop_after is None else min(config.iterations, start + stop_after)
     for it in range(start, end):
         if it == config.phase_boundary:
