@@ -61,6 +61,9 @@ class C3DPOConfig:
         basis: K, the number of shape coefficients; width, n_layers: the trunks' width and residual blocks.
         huber: the pseudo-Huber scale ``c``; n_rand: rotated copies per shape in the canonicalisation loss.
         z_angle: the largest in-plane rotation of the augmentation (radians).
+        keypoint_rescale: the centred keypoints are multiplied by it before the networks and the shapes divided
+            by it after (the authors' ``keypoint_rescale``); with a fixed ``huber`` it sets the scale at which
+            the reprojection loss turns from quadratic to linear.
         iterations, batch, lr, momentum, weight_decay: SGD; the lr is divided by 10 at 2/3 and 8/9 of
             ``iterations`` (epochs 60 and 80 of 90).
         seed, device, checkpoint_every: as :class:`prn.train.TrainConfig`.
@@ -72,6 +75,7 @@ class C3DPOConfig:
     huber: float = 0.01
     n_rand: int = 4
     z_angle: float = math.pi / 8
+    keypoint_rescale: float = 1.0
     iterations: int = PAPER_ITERATIONS
     batch: int = 1024
     lr: float = 1e-3
@@ -86,6 +90,8 @@ class C3DPOConfig:
             raise ValidationError(f"C3DPOConfig: expected basis >= 1, width >= 4, n_layers >= 0, iterations >= 1, "
                                   f"batch >= 2, got {self.basis}, {self.width}, {self.n_layers}, {self.iterations}, "
                                   f"{self.batch}")
+        if not self.keypoint_rescale > 0:
+            raise ValidationError(f"C3DPOConfig: expected keypoint_rescale > 0, got {self.keypoint_rescale}")
 
     def lr_at(self, iteration: int) -> float:
         drops = sum(iteration >= round(self.iterations * f) for f in (60 / 90, 80 / 90))
@@ -234,7 +240,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         start, history = state["iteration"], state["history"]
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"].cpu())
-    w_all = torch.as_tensor(_centre(inputs, weights), dtype=torch.float32, device=device)
+    w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
     v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
     model.train()
     t0 = time.perf_counter()
@@ -291,7 +297,8 @@ def predict_c3dpo(model: C3DPO, inputs: np.ndarray, weights: np.ndarray, batch: 
         x, v = inputs[s:s + batch], weights[s:s + batch]
         w = torch.as_tensor(_centre(x, v), dtype=torch.float32, device=device)
         vis = torch.as_tensor(v > 0, dtype=torch.float32, device=device)
-        cam = model(w, vis)["camera"]  # (n, 3, P)
+        rescale = model.config.keypoint_rescale
+        cam = model(w * rescale, vis)["camera"] / rescale  # (n, 3, P)
         xy = vis[:, None] * w + (1 - vis[:, None]) * cam[:, :2]
         out.append(torch.cat([xy, cam[:, 2:]], dim=1).transpose(1, 2).double().cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))

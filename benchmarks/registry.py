@@ -62,6 +62,7 @@ class RunContext:
     jobs: int = 1
     c3dpo_batch: int = 1024
     c3dpo_iterations: int | None = None
+    c3dpo_rescale: float = 1.0
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

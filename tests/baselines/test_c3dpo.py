@@ -62,3 +62,19 @@ def test_c3dpo_trains_resumes_and_keeps_the_input_coordinates(tmp_path):
     with pytest.raises(ValueError, match="another configuration"):
         train_c3dpo(x, w, C3DPOConfig(basis=4, width=64, n_layers=1, iterations=30, batch=32), tmp_path,
                     progress=False)
+
+
+def test_keypoint_rescale_scales_the_networks_inputs_and_divides_their_shapes_back():
+    torch.manual_seed(0)
+    small = dict(basis=3, width=16, n_layers=1)
+    plain = C3DPO(6, C3DPOConfig(**small)).eval()
+    scaled = C3DPO(6, C3DPOConfig(keypoint_rescale=2.5, **small)).eval()
+    scaled.load_state_dict(plain.state_dict())
+    rng = np.random.default_rng(0)
+    x, v = rng.standard_normal((5, 6, 2)), np.ones((5, 6))
+    v[0, 2] = 0.0  # one hidden point: its xy come from the network too
+    ours = predict_c3dpo(scaled, x, v)
+    theirs = predict_c3dpo(plain, 2.5 * x, v) / 2.5  # the same networks seeing the rescaled keypoints
+    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
+    with pytest.raises(Exception, match="keypoint_rescale"):
+        C3DPOConfig(keypoint_rescale=0.0)
