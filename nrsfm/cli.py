@@ -11,7 +11,7 @@
 Bad input ends with one line on stderr and exit status 2 (no traceback).
 Existing output files are never overwritten without ``--force``.
 
-Threads: ``--threads N`` (default 1) caps numpy's BLAS/OpenMP pools (threadpoolctl) and torch's intra-op
+Threads: ``--threads N`` (default 1) caps numpy's BLAS pools (threadpoolctl) and torch's intra-op
 threads. The solvers' work is many small matrix products and decompositions, which gain little from a
 second thread on an idle machine and lose several-fold when another process holds a core (threads that
 spin-wait on the busy core); ``--threads 0`` leaves the libraries' own defaults.
@@ -122,25 +122,20 @@ def main(argv: list[str] | None = None) -> int:
 
 @contextlib.contextmanager
 def _thread_limits(threads: int, torch_too: bool):
-    """Cap BLAS/OpenMP pools at ``threads`` (0: no cap) and, for the commands that may run torch, torch's
-    intra-op threads, for the duration of a command; the previous counts are restored after it."""
+    """Cap the BLAS pools at ``threads`` (0: no cap) for the duration of a command and, for the commands that may
+    run torch, torch's intra-op threads: only where this process has not imported torch yet (a count changed
+    after torch's thread pool has run can hang it, pytorch#141358), and then for the rest of the process."""
     if threads == 0:
         yield
         return
     from threadpoolctl import threadpool_limits
 
-    torch_before = None
-    if torch_too:
+    if torch_too and "torch" not in sys.modules:
         import torch
 
-        torch_before = torch.get_num_threads()
         torch.set_num_threads(threads)
-    try:
-        with threadpool_limits(limits=threads):
-            yield
-    finally:
-        if torch_before is not None:
-            torch.set_num_threads(torch_before)
+    with threadpool_limits(limits=threads, user_api="blas"):
+        yield
 
 
 # --------------------------------------------------------------------------- commands

@@ -197,7 +197,7 @@ def test_threads_cap_the_pools_during_a_command_and_bad_counts_are_refused(tmp_p
     seen = {}
 
     def spy(args):  # what the command sees
-        seen["blas"] = [p["num_threads"] for p in threadpool_info()]
+        seen["blas"] = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
         return 0
 
     monkeypatch.setitem(cli._COMMANDS, "info", spy)
