@@ -11,8 +11,8 @@
 Bad input ends with one line on stderr and exit status 2 (no traceback).
 Existing output files are never overwritten without ``--force``.
 
-Threads: ``--threads N`` (default 1) caps numpy's BLAS pools (threadpoolctl) and torch's intra-op
-threads. The solvers' work is many small matrix products and decompositions, which gain little from a
+Threads: ``--threads N`` (default 1) caps the BLAS and OpenMP pools (threadpoolctl) and torch's
+intra-op threads. The solvers' work is many small matrix products and decompositions, which gain little from a
 second thread on an idle machine and lose several-fold when another process holds a core (threads that
 spin-wait on the busy core); ``--threads 0`` leaves the libraries' own defaults.
 """
@@ -106,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.threads < 0:
             raise _UsageError(f"nrsfm: --threads: expected 0 (the libraries' defaults) or a count >= 1, got "
                               f"{args.threads} (see 'nrsfm --help')")
-        with _thread_limits(args.threads, torch_too=args.command in ("solve", "demo")):
+        torch_too = args.command in ("solve", "demo")
+        with _thread_limits(args.threads, torch_too=torch_too, owns_process=argv is None):
             return _COMMANDS[args.command](args)
     except _UsageError as exc:
         print(str(exc), file=sys.stderr)
@@ -121,20 +122,21 @@ def main(argv: list[str] | None = None) -> int:
 
 
 @contextlib.contextmanager
-def _thread_limits(threads: int, torch_too: bool):
-    """Cap the BLAS pools at ``threads`` (0: no cap) for the duration of a command and, for the commands that may
-    run torch, torch's intra-op threads: only where this process has not imported torch yet (a count changed
-    after torch's thread pool has run can hang it, pytorch#141358), and then for the rest of the process."""
+def _thread_limits(threads: int, torch_too: bool, owns_process: bool):
+    """Cap the BLAS pools at ``threads`` (0: no cap) for the duration of a command. Where the command owns its
+    process (the ``nrsfm`` executable, not ``main([...])`` called from Python), also the OpenMP pools and, for
+    the commands that may run torch, torch's intra-op threads, for the rest of the process: changing torch's
+    count after its thread pool has run can hang it (pytorch#141358), so an embedding process keeps its own."""
     if threads == 0:
         yield
         return
     from threadpoolctl import threadpool_limits
 
-    if torch_too and "torch" not in sys.modules:
+    if torch_too and owns_process:
         import torch
 
         torch.set_num_threads(threads)
-    with threadpool_limits(limits=threads, user_api="blas"):
+    with threadpool_limits(limits=threads, user_api=None if owns_process else "blas"):  # None: BLAS and OpenMP
         yield
 
 
