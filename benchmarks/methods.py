@@ -19,7 +19,8 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
     from prn.train import load_model, predict, train
 
     data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling)
-    config = scaled_schedule(ctx.iterations, lam=lam, seed=ctx.seed, device=ctx.device)
+    config = scaled_schedule(ctx.iterations, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
+                             missing_points=ctx.missing_points, point_groups=ctx.point_groups)
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "frames": data.description})
     model_path = cache / "model.pt"
@@ -61,7 +62,7 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     from prn.data import build_training_set
     from prn.train import load_model, predict
 
-    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device)
+    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device, width=ctx.width)
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "targets": key})
     model_path = cache / "model.pt"

@@ -47,7 +47,8 @@ class Split:
 @dataclass
 class RunContext:
     """Options of one harness run: output folder (caches), iterations, seed, progress bars, parallel jobs (the
-    pseudo-label solves), C3DPO's minibatch.
+    pseudo-label solves), C3DPO's minibatch, the PRN rows' missing-point rate and point groups in training,
+    the networks' width.
 
     By default a cached model is reused and an interrupted training resumes
     from its checkpoint; ``retrain`` ignores both and trains from scratch.
@@ -63,6 +64,9 @@ class RunContext:
     c3dpo_batch: int = 1024
     c3dpo_iterations: int | None = None
     c3dpo_rescale: float = 1.0
+    missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
+    width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
+    point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

@@ -142,3 +142,24 @@ def test_training_leaves_denormals_enabled(small_set):
     train(small_set, TrainConfig(iterations=2, width=16, group_size=8, groups=1), progress=False)
     assert (torch.tensor([sys.float_info.min], dtype=torch.float64) / 4).item() > 0  # subnormals representable
     assert np.float64(sys.float_info.min) / 4 > 0
+
+
+def test_point_groups_split_every_frame_alike_and_train():
+    from prn.train import _point_groups
+
+    pred = torch.arange(2 * 7 * 3, dtype=torch.float32).reshape(2, 7, 3)
+    y, w = pred[..., :2].clone(), torch.ones(2, 7)
+    gp, gy, gw = _point_groups(pred, y, w, 3)
+    assert gp.shape == (6, 2, 3) and gy.shape == (6, 2, 2) and gw.shape == (6, 2)
+    # rows k*N .. k*N + N - 1 hold point group k of every frame: the same points in each frame
+    idx = gp[..., 0] / 3 % 7  # point index of each entry
+    for k in range(3):
+        assert torch.equal(idx[2 * k], idx[2 * k + 1])
+    assert len(set(idx.flatten().tolist())) == 6  # six distinct points (one left out)
+    torch.testing.assert_close(gy, gp[..., :2])
+    seqs = human_sequences(("S1",), ("walking",), (1,), n_frames=40)
+    data = build_training_set(seqs, sampling="consecutive")
+    res = train(data, TrainConfig(iterations=5, width=32, group_size=8, groups=2, point_groups=2), progress=False)
+    assert np.isfinite(res.history[-1]["loss"])
+    with pytest.raises(ValidationError, match="point_groups"):
+        TrainConfig(point_groups=0)

@@ -1,0 +1,169 @@
+"""PRN paper, supplementary Table S1: PRN-FCN's MPJPE (mm) on Human3.6M (GT-ortho) with 0-20% of the 2D points
+missing in training and test.
+
+    python -m benchmarks.table_s1 [--data synthetic|h36m] [--root DIR] [--ratios 0,0.05,0.1,0.15,0.2]
+                                  [--methods PRN-FCN[,PRN w/o reg]] [--iterations N] [--quick] [--out DIR]
+                                  [--resume | --retrain]
+
+The supplementary material's protocol: every point goes missing at random with the given probability, in
+training (each sample draws its own points: 0 in the input, weight 0 in the data term; ``TrainConfig.
+missing_points``) and in test (a fixed draw per sequence, :func:`nrsfm.datasets.synthetic.drop_entries`, so
+every method and run sees the same test points). The error is the PRN protocol's MPJPE over all 17 joints,
+the missing ones included (the network predicts every joint). Data, splits, rows and the cache of trained
+models are those of :mod:`benchmarks.table1`; one model is trained per row and ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.registry import RunContext, Split, methods
+from benchmarks.table1 import evaluate, load_splits
+from nrsfm.datasets.synthetic import drop_entries
+from nrsfm.errors import NRSfMError, ValidationError
+
+log = logging.getLogger("benchmarks.table_s1")
+
+RATIOS = (0.0, 0.05, 0.1, 0.15, 0.2)
+#: Published numbers (PRN, ECCV 2020, supplementary Table 1): Avg MPJPE (mm) per missing ratio.
+PAPER = {"PRN-FCN": dict(zip(RATIOS, (66.7, 69.8, 70.8, 72.1, 73.8)))}
+ROWS = ("PRN-FCN", "PRN w/o reg")
+
+
+def missing_split(split: Split, ratio: float) -> Split:
+    """``split`` with ``ratio`` of the test entries marked missing (the same entries in every run)."""
+    return Split(split.train_inputs, split.train_targets, [drop_entries(s, ratio) for s in split.test_inputs],
+                 split.test_truth, split.input_type, split.sampling, split.tag)
+
+
+def _ratios(text: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(r) for r in text.split(","))
+    except ValueError:
+        raise ValidationError(f"--ratios: expected comma-separated fractions such as 0,0.1,0.2, got {text!r}") from None
+    if not out or any(not 0 <= r < 1 for r in out):
+        raise ValidationError(f"--ratios: expected fractions in [0, 1), got {text!r}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.table_s1", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", choices=["synthetic", "h36m"], default=None,
+                   help="default: h36m when --root is given, else synthetic")
+    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA); implies --data h36m")
+    p.add_argument("--ratios", default=",".join(str(r) for r in RATIOS), help="missing ratios (default: the paper's)")
+    p.add_argument("--methods", default="PRN-FCN", help=f"comma-separated rows among {ROWS} (default: PRN-FCN, "
+                                                          "the paper's only row)")
+    p.add_argument("--quick", action="store_true", help="a short schedule and small data: a smoke run")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick)")
+    p.add_argument("--out", default=None, help="output folder (default: runs/table_s1-<data>)")
+    p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps copies")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--resume", dest="retrain", action="store_false",
+                   help="reuse cached models and resume interrupted training (the default)")
+    p.add_argument("--retrain", dest="retrain", action="store_true", help="train from scratch")
+    p.set_defaults(retrain=False)
+    args = p.parse_args(argv)
+    if args.data is None:
+        args.data = "h36m" if args.root else "synthetic"
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    try:
+        return _run(args)
+    except (NRSfMError, FileNotFoundError, ValueError) as exc:
+        print(f"table_s1: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    t_start = time.perf_counter()
+    ratios = _ratios(args.ratios)
+    names = [m.strip() for m in args.methods.split(",")]
+    for n in names:
+        if n not in ROWS:
+            raise ValidationError(f"--methods: expected names among {list(ROWS)}, got {n!r}")
+    if args.iterations is not None and args.iterations < 1:
+        raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
+    iterations = args.iterations or (300 if args.quick else 70_000 if args.data == "h36m" else 4000)
+    out = Path(args.out or f"runs/table_s1-{args.data}{'-quick' if args.quick else ''}")
+    registry = methods()
+    splits, desc = load_splits(args, ("gt-ortho",))
+    split = splits["gt-ortho"]
+    results: dict[tuple[str, float], dict[str, tuple[float, int]]] = {}
+    timings: dict = {}
+    for ratio in ratios:
+        ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
+                         device=args.device, retrain=args.retrain, missing_points=ratio)
+        test = missing_split(split, ratio)
+        for name in names:
+            log.info("table_s1: %s with %.0f%% of the points missing ...", name, 100 * ratio)
+            preds = registry[name].run(test, ctx)
+            results[(name, ratio)] = evaluate(preds, test.test_truth)
+        timings[str(ratio)] = ctx.timings
+
+    header = ["Method"] + [f"{100 * r:g}%" for r in ratios]
+    rows, rows_csv = [], []
+    for name in names:
+        rows.append([f"{name} (ours)"] + [results[(name, r)]["Avg"][0] for r in ratios])
+        if name in PAPER and args.data == "h36m":
+            rows.append([f"{name} (paper)"] + [PAPER[name].get(r) for r in ratios])
+        for r in ratios:
+            for action, (err, frames) in results[(name, r)].items():
+                rows_csv.append({"method": name, "missing_ratio": r, "action": action, "mpjpe_mm": err,
+                                 "frames": frames, "paper_mpjpe_mm": PAPER.get(name, {}).get(r) if action == "Avg"
+                                 and args.data == "h36m" else None})
+    text = (f"### Table S1: MPJPE (mm) with missing 2D points in training and test, {desc['data']} GT-ortho, test "
+            f"{'+'.join(desc['test_subjects'])}, {iterations} iterations, PRN protocol (mean-centred, z sign per "
+            "frame, no Procrustes; all joints, missing ones included)\n\n" + markdown_table(header, rows))
+    if args.data == "synthetic":
+        text += "\n\nSynthetic stand-in: the paper's numbers are Human3.6M's and are not shown beside it."
+    print(text)
+    total = time.perf_counter() - t_start
+    meta = run_metadata(table="PRN supplementary Table S1", metric="MPJPE (mm), PRN protocol", data=desc,
+                        ratios=list(ratios), methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
+                        timings=timings, total_seconds=total)
+    write_csv(out / "table_s1.csv", rows_csv)
+    write_json(out / "table_s1.json", {"meta": meta, "results": [
+        {"method": n, "missing_ratio": r, "per_action": {a: {"mpjpe_mm": v[0], "frames": v[1]} for a, v in res.items()},
+         "paper_avg": PAPER.get(n, {}).get(r)} for (n, r), res in results.items()]})
+    write_json(out / "meta.json", meta)
+    (out / "table_s1.md").write_text(text + "\n")
+    _plot(results, names, ratios, out / "table_s1.png", args.data)
+    print(f"\nwrote {out}/table_s1.md, table_s1.csv, table_s1.json, meta.json, table_s1.png ({total:.0f} s)")
+    return 0
+
+
+def _plot(results, names, ratios, path: Path, data: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.5, 3.2))
+    x = 100 * np.asarray(ratios)
+    for name in names:
+        ax.plot(x, [results[(name, r)]["Avg"][0] for r in ratios], "o-", label=f"{name} (ours, {data})")
+        if name in PAPER and data == "h36m":
+            ax.plot(x, [PAPER[name].get(r, np.nan) for r in ratios], "x--", label=f"{name} (paper)")
+    ax.set_xlabel("missing points (%)")
+    ax.set_ylabel("MPJPE (mm)")
+    ax.set_title("Table S1: missing 2D points", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, format="png", dpi=90)
+    tmp.replace(path)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
