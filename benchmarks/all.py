@@ -55,8 +55,6 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
         argv += ["--root", args.root]
     if name != "table_s1":
         argv += ["--jobs", str(args.jobs)]
-    if name == "table_s1":
-        argv += ["--methods", "PRN-FCN,PRN w/o reg"]
     argv += ["--device", args.device]
     return argv
 

@@ -93,15 +93,15 @@ def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.n
     supervised network."""
     from baselines.labels import code_version, make_labels
 
-    labels = make_labels(split.train_inputs, solver, out_dir=ctx.out_dir / "labels", dataset=split.tag,
-                         jobs=ctx.jobs, progress=ctx.progress)
+    labels = make_labels(split.train_inputs, solver, ctx.label_params.get(solver), out_dir=ctx.out_dir / "labels",
+                         dataset=split.tag, jobs=ctx.jobs, progress=ctx.progress)
     s = labels.summary
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
              f"{s['label_mpjpe']:.1f}" if s["label_mpjpe"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
     return _cached_supervised(split, ctx, name, labels.labels,
-                              {"solver": solver, "code": code_version(), "gap": s["gap"]})
+                              {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]})
 
 
 @register_method("CSF2 + NN", ("gt-ortho",), "PRN-FCN's network on CSF2's pseudo-3D labels (supervised)")

@@ -67,6 +67,7 @@ class RunContext:
     missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
     width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
     point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)
+    label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:
