@@ -270,7 +270,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
                    "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
-              "history": history[-5:]}
+              "history": history}
     if out is not None:
         atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
               out / "model.pt")

@@ -54,7 +54,7 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
     if real:
         argv += ["--root", args.root]
     if name != "table_s1":
-        argv += ["--jobs", str(args.jobs)]
+        argv += ["--jobs", str(args.jobs), "--plots"]
     argv += ["--device", args.device]
     return argv
 

@@ -93,6 +93,7 @@ def parser(spec: TableSpec) -> argparse.ArgumentParser:
     p.add_argument("--c3dpo-batch", type=int, default=None, help="C3DPO's minibatch (default 1024; 128 quick)")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--plots", action="store_true", help="also write the qualitative figure and training curves")
     p.add_argument("--resume", dest="retrain", action="store_false", help="reuse cached models (the default)")
     p.add_argument("--retrain", dest="retrain", action="store_true", help="train from scratch")
     p.set_defaults(retrain=False)
@@ -135,6 +136,7 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
     log.info("%s: %s, %d training and %d test sequences, %d iterations", spec.name, desc.get("data"),
              len(split.train_inputs), len(split.test_inputs), iterations)
     results: dict[str, tuple[float, int]] = {}
+    predictions: dict[str, list[np.ndarray]] = {}
     not_run: dict[str, str] = {}
     for name in names:
         m = registry[name]
@@ -142,7 +144,8 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
             not_run[name] = f"{name} does not take {split.input_type} input"
             continue
         log.info("%s: training/evaluating %s ...", spec.name, name)
-        results[name] = evaluate(m.run(split, ctx), split.test_truth, spec.error)
+        predictions[name] = m.run(split, ctx)
+        results[name] = evaluate(predictions[name], split.test_truth, spec.error)
 
     rows = []
     for name in names:
@@ -175,7 +178,21 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
     (out / f"{spec.name}.md").write_text(text + "\n")
     bar_chart(results, spec.paper if real else {}, out / f"{spec.name}.png", spec.metric,
               f"{spec.title} ({desc.get('data')})")
-    print(f"\nwrote {out}/{spec.name}.md, .csv, .json, meta.json, .png ({total:.0f} s)")
+    written = f"{spec.name}.md, .csv, .json, meta.json, .png"
+    if args.plots and results:
+        from benchmarks import figures
+
+        shown = [n for n in ("PRN-FCN", "C3DPO", "PR + NN", "CSF2 + NN", "PRN w/o reg") if n in results][:2]
+        frames = figures.pick_frames(split.test_truth)
+        shapes = figures.shapes_for_frames({n: predictions[n] for n in shown}, split.test_truth, frames)
+        seq = split.test_truth[0]
+        figures.qualitative(out / f"{spec.name}_qualitative.png",
+                            np.stack([split.test_inputs[i].points_2d[t] for i, t in frames]), shapes, seq.edges,
+                            seq.joint_names, title=f"{spec.title} ({desc.get('data')}): test frames")
+        figures.training_curves(out / f"{spec.name}_curves.png", {k: Path(v["cache"]) for k, v in ctx.timings.items()
+                                                                 if "cache" in v}, title=f"{spec.title}: training loss")
+        written += f", {spec.name}_qualitative.png, {spec.name}_curves.png"
+    print(f"\nwrote {out}/{written} ({total:.0f} s)")
     return 0
 
 

@@ -193,6 +193,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="C3DPO's keypoint_rescale: the PRN-normalised keypoints are multiplied by it (default 1)")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
+                                                        "qualitative, per-action bars, training curves")
     p.add_argument("--resume", dest="retrain", action="store_false",
                    help="reuse cached models and resume interrupted training from its checkpoint (the default)")
     p.add_argument("--retrain", dest="retrain", action="store_true",
@@ -235,6 +237,7 @@ def _run(args: argparse.Namespace) -> int:
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
     results: dict[tuple[str, str], dict[str, tuple[float, int]]] = {}
+    predictions: dict[tuple[str, str], list[np.ndarray]] = {}
     not_run: dict[tuple[str, str], str] = {}
     for inp, split in splits.items():
         for name in names:
@@ -245,6 +248,8 @@ def _run(args: argparse.Namespace) -> int:
             log.info("training/evaluating %s on %s ...", name, inp)
             preds = m.run(split, ctx)
             results[(name, inp)] = evaluate(preds, split.test_truth)
+            if args.plots:
+                predictions[(name, inp)] = preds
 
     cols = _columns(args.data, {k: v for k, v in results.items()})
     rows_csv, md = [], []
@@ -307,8 +312,39 @@ def _run(args: argparse.Namespace) -> int:
     write_json(out / "meta.json", meta)
     (out / "table1.md").write_text(text + "\n")
     _plot(results, out / "table1.png", args.data)
-    print(f"\nwrote {out}/table1.md, table1.csv, table1.json, meta.json, table1.png ({total:.0f} s)")
+    written = ["table1.md", "table1.csv", "table1.json", "meta.json", "table1.png"]
+    if args.plots:
+        written += _figures(out, splits, results, predictions, ctx, args.data, cols)
+    print(f"\nwrote {out}/{', '.join(written)} ({total:.0f} s)")
     return 0
+
+
+def _figures(out: Path, splits, results, predictions, ctx, data: str, cols: list[str]) -> list[str]:
+    """The comparison figures of every input type (benchmarks.figures); returns the file names."""
+    from benchmarks import figures
+
+    written = []
+    for inp, split in splits.items():
+        names = [n for (n, i) in results if i == inp]
+        if not names:
+            continue
+        bars = {n: {c: results[(n, inp)].get(c, (np.nan,))[0] for c in cols + ["Avg"]} for n in names}
+        paper = {n: {c: _paper_cell(PAPER[(n, inp)], c) for c in cols + ["Avg"]} for n in names
+                 if (n, inp) in PAPER and data == "h36m"}
+        figures.per_action_bars(out / f"table1_{inp}_actions.png", bars, cols + ["Avg"], paper,
+                                title=f"Table 1 ({inp}, {data}): MPJPE per action" + ("; black: the paper" if paper else ""))
+        shown = [n for n in ("PRN-FCN",) if n in names]
+        shown += [n for n in ("SPM + NN", "CSF2 + NN", "C3DPO", "PR + NN", "GT 3D", "PRN w/o reg") if n in names][:1]
+        frames = figures.pick_frames(split.test_truth)
+        shapes = figures.shapes_for_frames({n: predictions[(n, inp)] for n in shown}, split.test_truth, frames)
+        inputs = np.stack([split.test_inputs[i].points_2d[t] for i, t in frames])
+        seq0 = split.test_truth[0]
+        figures.qualitative(out / f"table1_{inp}_qualitative.png", inputs, shapes, seq0.edges, seq0.joint_names,
+                            title=f"Table 1 ({inp}, {data}): test frames; depth sign as the metric chooses it")
+        caches = {k: Path(v["cache"]) for k, v in ctx.timings.items() if k.endswith(f"({inp})") and "cache" in v}
+        figures.training_curves(out / f"table1_{inp}_curves.png", caches, title=f"Table 1 ({inp}): training loss")
+        written += [f"table1_{inp}_{k}.png" for k in ("actions", "qualitative", "curves")]
+    return written
 
 
 def _paper_cell(paper, col):

@@ -281,7 +281,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                       "n_inputs": data.n_inputs, "history": history}, out / "model.pt")
         (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), "seconds": seconds,
                                                     "iterations_run": run, "data": data.description,
-                                                    "history": history[-5:]}, indent=2))
+                                                    "history": history}, indent=1))
     model.eval()
     return TrainResult(model=model, config=config, history=history, seconds=seconds, iterations_run=run,
                        iterations_per_second=run / seconds if seconds > 0 else float("nan"))

@@ -51,13 +51,14 @@ def test_table3_computes_every_row_on_tiny_faces(tmp_path, capsys):
 
     spec = _tiny(table3.SPEC, load)
     args = harness.parser(spec).parse_args(["--iterations", "12", "--out", str(tmp_path), "--no-progress",
-                                            "--jobs", "1", "--c3dpo-batch", "16"])
+                                            "--jobs", "1", "--c3dpo-batch", "16", "--plots"])
     args.data = "synthetic"
     assert harness.run(spec, args) == 0
     data = json.loads((tmp_path / "table3.json").read_text())
     assert set(data["results"]) == set(table3.PAPER) and not data["not_run"]
     assert all(0 < r["error"] < 2 for r in data["results"].values())
-    assert (tmp_path / "table3.png").exists()
+    for f in ("table3.png", "table3_qualitative.png", "table3_curves.png"):
+        assert (tmp_path / f).stat().st_size > 5000, f
     text = capsys.readouterr().out
     assert "| PR + NN |" in text and "Pseudo-labels" in text
 
@@ -98,3 +99,39 @@ def test_tables_refuse_bad_arguments(tmp_path, capsys, argv, message):
 def test_table3_without_300vw_is_a_clear_error(tmp_path, capsys):
     assert table3.main(["--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "300vw-3d: expected a dataset folder" in capsys.readouterr().err
+
+
+def test_table1_plots_write_every_figure(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
+    assert table1.main(["--iterations", "12", "--out", str(tmp_path), "--no-progress", "--methods",
+                        "PRN-FCN,GT 3D", "--plots"]) == 0
+    for kind in ("actions", "qualitative", "curves"):
+        assert (tmp_path / f"table1_gt-ortho_{kind}.png").stat().st_size > 5000, kind
+
+
+def test_limb_colours_follow_the_joint_names():
+    from benchmarks.figures import CENTRE, LEFT, RIGHT, limb_colours
+    from nrsfm.datasets import h36m
+
+    colours = dict(zip(h36m.EDGES, limb_colours(h36m.EDGES, h36m.JOINT_NAMES)))
+    assert colours[(4, 5)] == LEFT and colours[(1, 2)] == RIGHT and colours[(7, 8)] == CENTRE
+    assert colours[(0, 4)] == LEFT  # hip centre to the left hip: a left limb
+
+
+def test_all_runs_the_chosen_tables_and_summarises(tmp_path, capsys, monkeypatch):
+    from benchmarks import all as all_tables
+
+    def fake_main(argv):  # a finished table3 folder, as the real harness writes it
+        out = tmp_path / "o" / "table3"
+        out.mkdir(parents=True)
+        (out / "table3.json").write_text(json.dumps({"meta": {"data": {"data": "synthetic faces"}}, "paper": {},
+                                                     "results": {"PRN-FCN": {"error": 0.2, "frames": 9},
+                                                                 "PRN w/o reg": {"error": 0.4, "frames": 9}}}))
+        assert "--quick" in argv and "--plots" in argv
+        return 0
+
+    monkeypatch.setattr(table3, "main", fake_main)
+    assert all_tables.main(["--quick", "--tables", "table3", "--out", str(tmp_path / "o")]) == 0
+    text = (tmp_path / "o" / "summary.md").read_text()
+    assert "PRN-FCN beats PRN w/o reg: yes" in text and "| PRN-FCN | 0.2000 |" in text
+    assert all_tables.main(["--tables", "nope"]) == 2

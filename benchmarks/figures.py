@@ -1,0 +1,185 @@
+"""The paper's comparison figures, as PNG files written by the tables' ``--plots``.
+
+- :func:`qualitative`: for chosen test frames, the 2D input, each method's 3D and the ground truth, every 3D
+  panel with the same view and the same axis limits, left limbs red and right limbs blue (the paper's Fig. 3).
+- :func:`per_action_bars`: one group of bars per action, one bar per method, the paper's values as markers.
+- :func:`training_curves`: the training loss of every learned row against the iteration (log scale).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+LEFT, RIGHT, CENTRE = "tab:red", "tab:blue", "0.3"
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, format="png", dpi=90)
+    tmp.replace(path)
+
+
+def limb_colours(edges, joint_names=None) -> list[str]:
+    """A colour per edge: red where both ends are left joints (names starting with ``L``), blue for right (``R``),
+    grey otherwise; without names, by the sign of nothing: all grey."""
+    if joint_names is None:
+        return [CENTRE] * len(edges)
+
+    def side(i):
+        n = joint_names[i]
+        return "L" if n.startswith("L") else "R" if n.startswith("R") else "C"
+
+    out = []
+    for a, b in edges:
+        sa, sb = side(a), side(b)
+        s = sa if sa == sb or sb == "C" else sb if sa == "C" else "C"
+        out.append(LEFT if s == "L" else RIGHT if s == "R" else CENTRE)
+    return out
+
+
+def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray], edges, joint_names=None, *,
+                title: str = "", elev: float = 15.0, azim: float = -70.0) -> None:
+    """Rows: test frames; columns: the 2D input, then every entry of ``shapes`` (name -> `(n, P, 3)`, the ground
+    truth among them, last by convention), in millimetres, camera frame (x right, y down, z away). Without
+    ``edges`` the points are drawn as dots, coloured by depth in 3D."""
+    plt = _pyplot()
+    n = len(inputs_2d)
+    names = list(shapes)
+    edges = [] if edges is None else [tuple(e) for e in edges]
+    colours = limb_colours(edges, joint_names)
+    dots = not edges  # a point cloud (dense surfaces): points instead of limbs
+    fig = plt.figure(figsize=(2.3 * (len(names) + 1), 2.3 * n))
+    for r in range(n):
+        ax = fig.add_subplot(n, len(names) + 1, r * (len(names) + 1) + 1)
+        x = inputs_2d[r]
+        for (a, b), c in zip(edges, colours):
+            ax.plot(x[[a, b], 0], x[[a, b], 1], color=c, lw=1.5)
+        if dots:
+            ax.scatter(x[:, 0], x[:, 1], s=1, c=CENTRE)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if r == 0:
+            ax.set_title("2D input", fontsize=8)
+        frame = np.stack([shapes[k][r] - shapes[k][r].mean(axis=0) for k in names])  # (M, P, 3)
+        half = np.abs(frame).max()  # one cube for every method of this frame
+        for j, name in enumerate(names):
+            ax = fig.add_subplot(n, len(names) + 1, r * (len(names) + 1) + j + 2, projection="3d")
+            s = frame[j]
+            for (a, b), c in zip(edges, colours):  # plotted as (x, z, -y): y down in the camera, up on screen
+                ax.plot(s[[a, b], 0], s[[a, b], 2], -s[[a, b], 1], color=c, lw=1.5)
+            if dots:
+                ax.scatter(s[:, 0], s[:, 2], -s[:, 1], s=1, c=s[:, 2], cmap="viridis")
+            ax.set_xlim(-half, half)
+            ax.set_ylim(-half, half)
+            ax.set_zlim(-half, half)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=elev, azim=azim)
+            ax.set_xticklabels([])
+            ax.set_yticklabels([])
+            ax.set_zticklabels([])
+            if r == 0:
+                ax.set_title(name, fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def per_action_bars(path: Path, results: dict[str, dict[str, float]], actions: list[str],
+                    paper: dict[str, dict[str, float]] | None = None, *, ylabel: str = "MPJPE (mm)",
+                    title: str = "") -> None:
+    """``results``: method -> action -> error (``actions`` in order, "Avg" last if wanted); ``paper`` the same
+    for the published values, drawn as black markers over the bars."""
+    plt = _pyplot()
+    names = list(results)
+    x = np.arange(len(actions))
+    w = 0.8 / max(len(names), 1)
+    fig, ax = plt.subplots(figsize=(max(6, 0.75 * len(actions) * max(1, len(names) / 3)), 3.6))
+    for i, name in enumerate(names):
+        pos = x - 0.4 + w * (i + 0.5)
+        ax.bar(pos, [results[name].get(a, np.nan) for a in actions], w, label=name)
+        if paper and name in paper:
+            ax.plot(pos, [paper[name].get(a, np.nan) for a in actions], "k_", markersize=max(3, 40 * w), mew=1.5,
+                    label="paper" if i == 0 else None)
+    ax.set_xticks(x, actions, fontsize=7, rotation=30, ha="right")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=6, ncol=min(4, len(names) + 1))
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def training_curves(path: Path, caches: dict[str, Path], *, title: str = "") -> int:
+    """The loss of every row whose cache folder holds a ``train.json`` with a history (PRN's total loss; the
+    supervised rows' 3D loss; C3DPO's reprojection plus canonicalisation). Returns the number of curves drawn."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    drawn = 0
+    for name, folder in caches.items():
+        f = Path(folder) / "train.json"
+        if not f.exists():
+            continue
+        hist = json.loads(f.read_text()).get("history", [])
+        if len(hist) < 2:
+            continue
+        it = [h["iteration"] for h in hist]
+        loss = [h["loss"] if "loss" in h else h.get("reprojection", np.nan) + h.get("canonicalisation", 0.0)
+                for h in hist]
+        ax.plot(it, loss, label=name, lw=1)
+        drawn += 1
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("training loss")
+    if title:
+        ax.set_title(title, fontsize=9)
+    if drawn:
+        ax.legend(fontsize=6)
+    else:
+        ax.text(0.5, 0.5, "no row logged two or more iterations", ha="center", transform=ax.transAxes)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return drawn
+
+
+def shapes_for_frames(predictions: dict[str, list[np.ndarray]], truth: list, frames) -> dict[str, np.ndarray]:
+    """De-normalised, centred predictions of each method at ``frames`` (:func:`pick_frames`), each mirrored in
+    depth where that is closer to the ground truth (as the metrics choose the sign), and the ground truth last."""
+    from prn.data import denormalize
+
+    out = {}
+    for name, preds in predictions.items():
+        rows = []
+        for i, t in frames:
+            gt = truth[i].points_3d[t] - truth[i].points_3d[t].mean(axis=0)
+            p = denormalize(preds[i][t:t + 1], truth[i].points_3d[t:t + 1])[0]
+            p = p - p.mean(axis=0)
+            m = p * np.array([1.0, 1.0, -1.0])
+            rows.append(m if np.linalg.norm(m - gt) < np.linalg.norm(p - gt) else p)
+        out[name] = np.stack(rows)
+    out["ground truth"] = np.stack([truth[i].points_3d[t] for i, t in frames])
+    return out
+
+
+def pick_frames(truth: list, n: int = 4) -> list[tuple[int, int]]:
+    """``n`` (sequence, frame) pairs spread evenly over the test sequences, each at its sequence's middle."""
+    idx = np.linspace(0, len(truth) - 1, min(n, len(truth))).round().astype(int)
+    return [(int(i), truth[i].n_frames // 2) for i in idx]
