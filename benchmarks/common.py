@@ -202,3 +202,27 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+def add_training_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every table that trains networks shares: seed, device, progress bars, cache reuse."""
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    p.add_argument("--no-progress", action="store_true", help="hide the training progress bars")
+    p.add_argument("--resume", dest="retrain", action="store_false",
+                   help="reuse cached models and resume interrupted training from its checkpoint (the default)")
+    p.add_argument("--retrain", dest="retrain", action="store_true",
+                   help="ignore cached models and checkpoints; train from scratch")
+    p.set_defaults(retrain=False)
+
+
+def run_table(name: str, run: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """``run(args)`` with INFO logging on stderr; bad input ends in one line ``<name>: error: ...`` and status 2."""
+    from nrsfm.errors import NRSfMError
+
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    try:
+        return run(args)
+    except (NRSfMError, FileNotFoundError, ValueError) as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2

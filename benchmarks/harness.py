@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
 from benchmarks.registry import RunContext, Split, methods
-from nrsfm.errors import NRSfMError, ValidationError
+from nrsfm.errors import ValidationError
 
 log = logging.getLogger("benchmarks.harness")
 
@@ -87,16 +86,11 @@ def parser(spec: TableSpec) -> argparse.ArgumentParser:
                         f"synthetic, {spec.iterations[2]} quick); the lr schedule is compressed proportionally")
     p.add_argument("--methods", default=None, help=f"comma-separated rows (default: {', '.join(spec.rows)})")
     p.add_argument("--out", default=None, help=f"output folder (default: runs/{spec.name}-<data>)")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel pseudo-label solves")
     p.add_argument("--c3dpo-iterations", type=int, default=None, help="C3DPO's iterations (default: scaled)")
     p.add_argument("--c3dpo-batch", type=int, default=None, help="C3DPO's minibatch (default 1024; 128 quick)")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--no-progress", action="store_true")
     p.add_argument("--plots", action="store_true", help="also write the qualitative figure and training curves")
-    p.add_argument("--resume", dest="retrain", action="store_false", help="reuse cached models (the default)")
-    p.add_argument("--retrain", dest="retrain", action="store_true", help="train from scratch")
-    p.set_defaults(retrain=False)
+    add_training_arguments(p)
     return p
 
 
@@ -104,12 +98,7 @@ def main(spec: TableSpec, argv: list[str] | None = None) -> int:
     args = parser(spec).parse_args(argv)
     if args.data is None:
         args.data = spec.real_name if args.root else "synthetic"
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        return run(spec, args)
-    except (NRSfMError, FileNotFoundError, ValueError) as exc:
-        print(f"{spec.name}: error: {exc}", file=sys.stderr)
-        return 2
+    return run_table(spec.name, lambda a: run(spec, a), args)
 
 
 def run(spec: TableSpec, args: argparse.Namespace) -> int:

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
 from benchmarks.registry import RunContext, Split, methods
 from nrsfm.datasets import h36m
-from nrsfm.errors import NRSfMError, ValidationError
+from nrsfm.errors import ValidationError
 from nrsfm.metrics import mpjpe_prn_per_frame
 
 log = logging.getLogger("benchmarks.table1")
@@ -182,7 +182,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="output folder (default: runs/table1-<data>)")
     p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps "
                                                     "copies, auto to detect")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                    help="parallel solves of the pseudo-label pipeline, one BLAS thread each (default: every core)")
     p.add_argument("--c3dpo-iterations", type=int, default=None,
@@ -191,24 +190,13 @@ def main(argv: list[str] | None = None) -> int:
                                                                    "128 with --quick)")
     p.add_argument("--c3dpo-rescale", type=float, default=1.0,
                    help="C3DPO's keypoint_rescale: the PRN-normalised keypoints are multiplied by it (default 1)")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--no-progress", action="store_true")
     p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
                                                         "qualitative, per-action bars, training curves")
-    p.add_argument("--resume", dest="retrain", action="store_false",
-                   help="reuse cached models and resume interrupted training from its checkpoint (the default)")
-    p.add_argument("--retrain", dest="retrain", action="store_true",
-                   help="ignore cached models and checkpoints; train from scratch")
-    p.set_defaults(retrain=False)
+    add_training_arguments(p)
     args = p.parse_args(argv)
     if args.data is None:
         args.data = "h36m" if args.root else "synthetic"
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        return _run(args)
-    except (NRSfMError, FileNotFoundError, ValueError) as exc:
-        print(f"table1: error: {exc}", file=sys.stderr)
-        return 2
+    return run_table("table1", _run, args)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -301,7 +289,8 @@ def _run(args: argparse.Namespace) -> int:
     total = time.perf_counter() - t_start
     meta = run_metadata(table="PRN Table 1", metric="MPJPE (mm), PRN protocol", data=desc, inputs=list(inputs),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
-                        label_params=ctx.label_params, c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
+                        label_params=ctx.label_params,
+                        c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale},
                         timings=ctx.timings, total_seconds=total)
     write_csv(out / "table1.csv", rows_csv)
@@ -332,7 +321,8 @@ def _figures(out: Path, splits, results, predictions, ctx, data: str, cols: list
         paper = {n: {c: _paper_cell(PAPER[(n, inp)], c) for c in cols + ["Avg"]} for n in names
                  if (n, inp) in PAPER and data == "h36m"}
         figures.per_action_bars(out / f"table1_{inp}_actions.png", bars, cols + ["Avg"], paper,
-                                title=f"Table 1 ({inp}, {data}): MPJPE per action" + ("; black: the paper" if paper else ""))
+                                title=f"Table 1 ({inp}, {data}): MPJPE per action"
+                                + ("; black: the paper" if paper else ""))
         shown = [n for n in ("PRN-FCN",) if n in names]
         shown += [n for n in ("SPM + NN", "CSF2 + NN", "C3DPO", "PR + NN", "GT 3D", "PRN w/o reg") if n in names][:1]
         frames = figures.pick_frames(split.test_truth)

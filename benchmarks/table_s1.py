@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
 from benchmarks.registry import RunContext, Split, methods
 from benchmarks.table1 import evaluate, load_splits
 from nrsfm.datasets.synthetic import drop_entries
-from nrsfm.errors import NRSfMError, ValidationError
+from nrsfm.errors import ValidationError
 
 log = logging.getLogger("benchmarks.table_s1")
 
@@ -66,22 +66,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick)")
     p.add_argument("--out", default=None, help="output folder (default: runs/table_s1-<data>)")
     p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps copies")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto")
-    p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--resume", dest="retrain", action="store_false",
-                   help="reuse cached models and resume interrupted training (the default)")
-    p.add_argument("--retrain", dest="retrain", action="store_true", help="train from scratch")
-    p.set_defaults(retrain=False)
+    add_training_arguments(p)
     args = p.parse_args(argv)
     if args.data is None:
         args.data = "h36m" if args.root else "synthetic"
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        return _run(args)
-    except (NRSfMError, FileNotFoundError, ValueError) as exc:
-        print(f"table_s1: error: {exc}", file=sys.stderr)
-        return 2
+    return run_table("table_s1", _run, args)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -13,7 +13,6 @@ axis (:func:`surreal_sequence`).
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
