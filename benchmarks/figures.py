@@ -16,20 +16,19 @@ import numpy as np
 LEFT, RIGHT, CENTRE = "tab:red", "tab:blue", "0.3"
 
 
-def _pyplot():
-    import matplotlib
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only)."""
+    from nrsfm.plotting import _pyplot
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+    return _pyplot()
 
 
-def _save(fig, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png", dpi=90)
-    tmp.replace(path)
+def save(fig, path: Path) -> None:
+    """Write ``fig`` to ``path`` (PNG, replacing an earlier run's figure) atomically and close it."""
+    from nrsfm.plotting import _save
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    _save(fig, path, overwrite=True)
 
 
 def limb_colours(edges, joint_names=None) -> list[str]:
@@ -55,7 +54,7 @@ def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray]
     """Rows: test frames; columns: the 2D input, then every entry of ``shapes`` (name -> `(n, P, 3)`, the ground
     truth among them, last by convention), in millimetres, camera frame (x right, y down, z away). Without
     ``edges`` the points are drawn as dots, coloured by depth in 3D."""
-    plt = _pyplot()
+    plt = pyplot()
     n = len(inputs_2d)
     names = list(shapes)
     edges = [] if edges is None else [tuple(e) for e in edges]
@@ -97,8 +96,7 @@ def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray]
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save(fig, path)
 
 
 def per_action_bars(path: Path, results: dict[str, dict[str, float]], actions: list[str],
@@ -106,7 +104,7 @@ def per_action_bars(path: Path, results: dict[str, dict[str, float]], actions: l
                     title: str = "") -> None:
     """``results``: method -> action -> error (``actions`` in order, "Avg" last if wanted); ``paper`` the same
     for the published values, drawn as black markers over the bars."""
-    plt = _pyplot()
+    plt = pyplot()
     names = list(results)
     x = np.arange(len(actions))
     w = 0.8 / max(len(names), 1)
@@ -123,14 +121,13 @@ def per_action_bars(path: Path, results: dict[str, dict[str, float]], actions: l
         ax.set_title(title, fontsize=9)
     ax.legend(fontsize=6, ncol=min(4, len(names) + 1))
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save(fig, path)
 
 
 def training_curves(path: Path, caches: dict[str, Path], *, title: str = "") -> int:
     """The loss of every row whose cache folder holds a ``train.json`` with a history (PRN's total loss; the
     supervised rows' 3D loss; C3DPO's reprojection plus canonicalisation). Returns the number of curves drawn."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     drawn = 0
     for name, folder in caches.items():
@@ -155,8 +152,7 @@ def training_curves(path: Path, caches: dict[str, Path], *, title: str = "") -> 
     else:
         ax.text(0.5, 0.5, "no row logged two or more iterations", ha="center", transform=ax.transAxes)
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save(fig, path)
     return drawn
 
 

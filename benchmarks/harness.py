@@ -188,10 +188,9 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
 def bar_chart(results: dict[str, tuple[float, int]], paper: dict[str, float], path: Path, metric: str,
               title: str) -> None:
     """One bar per row, the paper's values as markers."""
-    import matplotlib
+    from benchmarks.figures import pyplot, save
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = list(results)
     x = np.arange(len(names))
@@ -204,8 +203,4 @@ def bar_chart(results: dict[str, tuple[float, int]], paper: dict[str, float], pa
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png", dpi=90)
-    tmp.replace(path)
-    plt.close(fig)
+    save(fig, path)

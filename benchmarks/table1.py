@@ -344,10 +344,9 @@ def _paper_cell(paper, col):
 
 
 def _plot(results, path: Path, data: str) -> None:
-    import matplotlib
+    from benchmarks.figures import pyplot, save
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     labels = [f"{n}\n{i}" for (n, i) in results]
     ours = [r["Avg"][0] for r in results.values()]
@@ -360,10 +359,7 @@ def _plot(results, path: Path, data: str) -> None:
     ax.set_ylabel("MPJPE (mm)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png", dpi=90)
-    tmp.replace(path)
-    plt.close(fig)
+    save(fig, path)
 
 
 if __name__ == "__main__":

@@ -132,10 +132,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _plot(results, names, ratios, path: Path, data: str) -> None:
-    import matplotlib
+    from benchmarks.figures import pyplot, save
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(4.5, 3.2))
     x = 100 * np.asarray(ratios)
@@ -148,10 +147,7 @@ def _plot(results, names, ratios, path: Path, data: str) -> None:
     ax.set_title("Table S1: missing 2D points", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png", dpi=90)
-    tmp.replace(path)
-    plt.close(fig)
+    save(fig, path)
 
 
 if __name__ == "__main__":
