@@ -70,13 +70,15 @@ def normalised_targets(shapes: list[np.ndarray]) -> np.ndarray:
 
 def train_supervised(inputs: list[Sequence], shapes: list[np.ndarray], config: TrainConfig,
                      out_dir: str | os.PathLike | None, *, targets_2d: list[Sequence] | None = None,
-                     resume: bool = True, progress: bool = True) -> tuple[TrainResult, TrainingSet]:
+                     resume: bool = True, progress: bool = True, images: list | None = None
+                     ) -> tuple[TrainResult, TrainingSet]:
     """Train PRN-FCN on ``inputs`` to predict ``shapes`` (per sequence `(F, P, 3)`, camera frame; NaN frames are
-    skipped). Returns the training result and the :class:`~prn.data.TrainingSet` (its input normalisation is
-    the one to apply to test inputs)."""
+    skipped), or, with ``images`` (one image source per sequence) and ``config.network`` a CNN backbone, to predict
+    them from the images. Returns the training result and the :class:`~prn.data.TrainingSet` (its input
+    normalisation is the one to apply to test inputs)."""
     if len(shapes) != len(inputs):
         raise ValidationError(f"shapes: expected one array per input sequence ({len(inputs)}), got {len(shapes)}")
-    data = build_training_set(inputs, targets_2d, sampling="random")
+    data = build_training_set(inputs, targets_2d, sampling="random", images=images)
     objective = Supervised3D(normalised_targets(shapes), batch=config.groups * config.group_size)
     log.info("supervised 3D: %d of %d training frames labelled", len(objective.labelled), len(data.inputs))
     return train(data, config, out_dir, resume=resume, progress=progress, objective=objective), data

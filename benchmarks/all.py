@@ -1,16 +1,17 @@
 """Every paper table, one after the other, with one progress display and one summary.
 
-    python -m benchmarks.all [--quick] [--root DIR] [--out DIR] [--tables table1,table_s1,table3,table4]
+    python -m benchmarks.all [--quick] [--root DIR] [--out DIR] [--tables table1,table2,table_s1,table3,...]
                              [--jobs N] [--device auto|cpu|cuda]
 
 Each table runs as ``python -m benchmarks.<table>`` would, writing its own folder under ``--out``
 (``runs/all[-quick]`` by default) with its Markdown, CSV, JSON and figures; trained models and pseudo-labels are
-cached there, so an interrupted run resumes where it stopped. With ``--root`` every table reads the real data it
-finds there (Human3.6M ``h36m/``, ``300vw-3d/``, ``surreal/``) and falls back to its embedded stand-in where the
-folder is absent (stated in the summary); without it every table runs on its stand-in.
+cached there (the pseudo-labels in one folder that every table shares), so an interrupted run resumes where it
+stopped. With ``--root`` every table reads the real data it finds there (Human3.6M ``h36m/`` and its frames
+``h36m/images/``, ``300vw-3d/`` and the frames in ``300vw/``, ``surreal/``) and falls back to its embedded
+stand-in where a folder is absent (stated in the summary); without it every table runs on its stand-in.
 
 The summary (``summary.md``) lists every row of every table with its number and the paper's, the data each ran
-on, its wall time, and whether PRN-FCN beats PRN w/o reg in that table.
+on, its wall time, and whether PRN (PRN-FCN, PRN-CNN) beats PRN w/o reg in that table.
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ from nrsfm.datasets import find_dataset
 
 log = logging.getLogger("benchmarks.all")
 
-#: Table module -> the dataset folder of its real data.
-TABLES = {"table1": "h36m", "table_s1": "h36m", "table3": "300vw-3d", "table4": "surreal"}
+#: Table module -> the dataset folders of its real data.
+TABLES = {"table1": ("h36m",), "table2": ("h36m", "h36m/images"), "table_s1": ("h36m",), "table3": ("300vw-3d",),
+          "table_s2": ("300vw-3d", "300vw"), "table4": ("surreal",)}
 
 
 def _rows(name: str, folder: Path) -> list[tuple[str, float | None, float | None]]:
@@ -54,7 +56,7 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
     if real:
         argv += ["--root", args.root]
     if name != "table_s1":
-        argv += ["--jobs", str(args.jobs), "--plots"]
+        argv += ["--jobs", str(args.jobs), "--plots", "--labels-dir", str(out.parent / "labels")]
     argv += ["--device", args.device]
     return argv
 
@@ -82,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     bar = tqdm(names, desc="tables", unit="table")
     for name in bar:
         bar.set_postfix_str(name)
-        real = args.root is not None and find_dataset(TABLES[name], args.root, required=False) is not None
+        real = args.root is not None and all(find_dataset(d, args.root, required=False) is not None
+                                             for d in TABLES[name])
         folder = out / name
         t = time.perf_counter()
         printed = io.StringIO()
@@ -103,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         verdict = s.get("prn_beats_no_reg")
         text.append(f"\n### {s['table']} ({s['data']}, {s['seconds']:.0f} s"
                     + (f", exit {s['rc']}: see its own output" if s["rc"] else "")
-                    + ("" if verdict is None else f"; PRN-FCN beats PRN w/o reg: {'yes' if verdict else 'NO'}")
+                    + ("" if verdict is None else f"; PRN beats PRN w/o reg: {'yes' if verdict else 'NO'}")
                     + ")\n")
         if s["rows"]:
             text.append(markdown_table(["row", "ours", "paper"], [list(r) for r in s["rows"]]))
@@ -118,9 +121,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _prn_beats_no_reg(rows) -> bool | None:
-    """Whether every PRN-FCN row is below the PRN w/o reg row of the same setting (None: no pair)."""
+    """Whether every PRN-FCN or PRN-CNN row is below the PRN w/o reg row of the same setting (None: no pair)."""
     ours = {r[0]: r[1] for r in rows}
-    pairs = [(v, ours.get(k.replace("PRN-FCN", "PRN w/o reg"))) for k, v in ours.items() if k.startswith("PRN-FCN")]
+    pairs = [(v, ours.get(k.replace(k[:7], "PRN w/o reg"))) for k, v in ours.items()
+             if k.startswith(("PRN-FCN", "PRN-CNN"))]
     pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
     return None if not pairs else all(a < b for a, b in pairs)
 

@@ -214,6 +214,13 @@ def add_training_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--retrain", dest="retrain", action="store_true",
                    help="ignore cached models and checkpoints; train from scratch")
     p.set_defaults(retrain=False)
+    p.add_argument("--labels-dir", default=None,
+                   help="the pseudo-labels' cache (default: <out>/labels); tables run together can share one")
+
+
+def labels_dir(args: argparse.Namespace) -> Path | None:
+    """``--labels-dir`` as a path (None: the table's own ``<out>/labels``)."""
+    return Path(args.labels_dir) if getattr(args, "labels_dir", None) else None
 
 
 def run_table(name: str, run: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:

@@ -32,21 +32,12 @@ def save(fig, path: Path) -> None:
 
 
 def limb_colours(edges, joint_names=None) -> list[str]:
-    """A colour per edge: red where both ends are left joints (names starting with ``L``), blue for right (``R``),
-    grey otherwise; without names, by the sign of nothing: all grey."""
-    if joint_names is None:
-        return [CENTRE] * len(edges)
+    """A matplotlib colour per edge: red for left limbs, blue for right, grey otherwise
+    (:func:`nrsfm.datasets.render.limb_sides`)."""
+    from nrsfm.datasets.render import limb_sides
 
-    def side(i):
-        n = joint_names[i]
-        return "L" if n.startswith("L") else "R" if n.startswith("R") else "C"
-
-    out = []
-    for a, b in edges:
-        sa, sb = side(a), side(b)
-        s = sa if sa == sb or sb == "C" else sb if sa == "C" else "C"
-        out.append(LEFT if s == "L" else RIGHT if s == "R" else CENTRE)
-    return out
+    palette = {"L": LEFT, "R": RIGHT, "C": CENTRE}
+    return [palette[x] for x in limb_sides(joint_names, edges)]
 
 
 def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray], edges, joint_names=None, *,

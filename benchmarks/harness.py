@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
-from benchmarks.registry import RunContext, Split, methods
+from benchmarks.common import (add_training_arguments, labels_dir, markdown_table, run_metadata, run_table, write_csv,
+                               write_json)
+from benchmarks.registry import QUICK_LABEL_PARAMS, RunContext, Split, methods
 from nrsfm.errors import ValidationError
 
 log = logging.getLogger("benchmarks.harness")
@@ -43,6 +44,7 @@ class TableSpec:
         context: extra :class:`RunContext` fields (network width, point groups) on real data;
             synthetic_context: the same for the stand-in (default: ``context``).
         frame: the frame of evaluation, stated under the table.
+        images: the rows read images (``rgb`` input): adds ``--backbone`` and ``--image-size``.
     """
 
     name: str
@@ -57,6 +59,7 @@ class TableSpec:
     context: dict = field(default_factory=dict)
     synthetic_context: dict | None = None
     real_name: str = "real"
+    images: bool = False
 
 
 def normalized_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -90,6 +93,14 @@ def parser(spec: TableSpec) -> argparse.ArgumentParser:
     p.add_argument("--c3dpo-iterations", type=int, default=None, help="C3DPO's iterations (default: scaled)")
     p.add_argument("--c3dpo-batch", type=int, default=None, help="C3DPO's minibatch (default 1024; 128 quick)")
     p.add_argument("--plots", action="store_true", help="also write the qualitative figure and training curves")
+    if spec.images:
+        from prn.images import BACKBONES
+
+        p.add_argument("--backbone", choices=BACKBONES, default=None,
+                       help=f"the CNN's backbone (default: {spec.context.get('network')} real, "
+                            f"{(spec.synthetic_context or spec.context).get('network')} synthetic)")
+        p.add_argument("--image-size", type=int, default=None, help="image side in pixels (default: 224 real, "
+                                                                     "64 synthetic)")
     add_training_arguments(p)
     return p
 
@@ -117,10 +128,15 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
     batch = args.c3dpo_batch or (128 if args.quick else 1024)
     if args.jobs < 1 or batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {batch}")
-    context = spec.context if real or spec.synthetic_context is None else spec.synthetic_context
-    ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
-                     device=args.device, retrain=args.retrain, jobs=args.jobs, c3dpo_batch=batch,
-                     c3dpo_iterations=args.c3dpo_iterations, **context)
+    context = dict(spec.context if real or spec.synthetic_context is None else spec.synthetic_context)
+    if getattr(args, "backbone", None):
+        context["network"] = args.backbone
+    if getattr(args, "image_size", None) is not None and args.image_size < 16:
+        raise ValidationError(f"--image-size: expected at least 16 pixels, got {args.image_size}")
+    ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
+                     progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
+                     c3dpo_batch=batch, c3dpo_iterations=args.c3dpo_iterations,
+                     label_params=QUICK_LABEL_PARAMS if args.quick else {}, **context)
     split, desc = spec.load(args)
     log.info("%s: %s, %d training and %d test sequences, %d iterations", spec.name, desc.get("data"),
              len(split.train_inputs), len(split.test_inputs), iterations)
@@ -145,6 +161,11 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
             rows.append([f"{name} (paper; not selected with --methods)", None, value if real else None])
     text = (f"### {spec.title}: {spec.metric}, {desc.get('data')}, {iterations} iterations, {spec.frame}\n\n"
             + markdown_table(["Method", f"{spec.metric} (ours)", f"{spec.metric} (paper)"], rows))
+    if split.input_type == "rgb":
+        from prn.images import initialisation
+
+        context["initialisation"] = initialisation(context.get("network", ctx.network))
+        text += f"\n\nImages: {desc.get('images')}; network: {context['initialisation']}."
     labels = [(k, v["labels"]) for k, v in ctx.timings.items() if "labels" in v]
     if labels:
         text += "\n\nPseudo-labels (training frames; MPJPE-style error of the labels is in the JSON):\n\n" + \

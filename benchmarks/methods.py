@@ -1,5 +1,6 @@
 """The built-in rows: PRN-FCN, PRN without regularisation (lambda = 0), the "+NN" baselines on pseudo-labels,
-GT 3D and C3DPO."""
+GT 3D and C3DPO; on image input (``rgb``) PRN-CNN, the "+CNN" baselines, and PRN w/o reg and GT 3D with the same
+CNN."""
 
 from __future__ import annotations
 
@@ -14,13 +15,32 @@ from benchmarks.registry import RunContext, Split, register_method, scaled_sched
 log = logging.getLogger(__name__)
 
 
+def _network(split: Split, ctx: RunContext) -> str:
+    """PRN-FCN on 2D input; on ``rgb`` input the context's CNN backbone."""
+    if split.input_type != "rgb":
+        return "fcn"
+    if split.train_images is None or split.test_images is None:
+        raise ValueError("rgb input: the split carries no images")
+    return ctx.network
+
+
+def _predict(model, data, split: Split) -> list[np.ndarray]:
+    from prn.train import predict, predict_images
+
+    if split.input_type == "rgb":
+        return [predict_images(model, im) for im in split.test_images]
+    return [predict(model, *data.prepare_inputs(seq)) for seq in split.test_inputs]
+
+
 def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.ndarray]:
     from prn.data import build_training_set
-    from prn.train import load_model, predict, train
+    from prn.train import load_model, train
 
-    data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling)
+    network = _network(split, ctx)
+    data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling,
+                              images=split.train_images if network != "fcn" else None)
     config = scaled_schedule(ctx.iterations, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                             missing_points=ctx.missing_points, point_groups=ctx.point_groups)
+                             missing_points=ctx.missing_points, point_groups=ctx.point_groups, network=network)
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "frames": data.description})
     model_path = cache / "model.pt"
@@ -36,11 +56,7 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
         ctx.timings[f"{name} ({split.input_type})"] = {
             "cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
             "iterations_per_second": res.iterations_per_second, "cache": str(cache)}
-    out = []
-    for seq in split.test_inputs:
-        x, w = data.prepare_inputs(seq)
-        out.append(predict(model, x, w))
-    return out
+    return _predict(model, data, split)
 
 
 @register_method("PRN-FCN", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN trained with the PR loss, lambda = 0.05")
@@ -48,7 +64,13 @@ def prn_fcn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _train_prn(split, ctx, "PRN-FCN", 0.05)
 
 
-@register_method("PRN w/o reg", ("gt-ortho", "gt-persp", "sh"), "the same network and data term, lambda = 0")
+@register_method("PRN-CNN", ("rgb",), "PRN-CNN (image backbone + PRN-FCN's head) trained with the PR loss, "
+                                      "lambda = 0.05")
+def prn_cnn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _train_prn(split, ctx, "PRN-CNN", 0.05)
+
+
+@register_method("PRN w/o reg", ("gt-ortho", "gt-persp", "sh", "rgb"), "the same network and data term, lambda = 0")
 def prn_no_reg(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _train_prn(split, ctx, "PRN w/o reg", 0.0)
 
@@ -60,32 +82,31 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     configuration and ``key`` (what the shapes are), then run on the test inputs."""
     from baselines.supervised import train_supervised
     from prn.data import build_training_set
-    from prn.train import load_model, predict
+    from prn.train import load_model
 
-    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device, width=ctx.width)
+    network = _network(split, ctx)
+    images = split.train_images if network != "fcn" else None
+    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device, width=ctx.width,
+                             network=network)
     cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
                                  "input": split.input_type, "targets": key})
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)
-        data = build_training_set(split.train_inputs, split.train_targets, sampling="random")
+        data = build_training_set(split.train_inputs, split.train_targets, sampling="random", images=images)
         info = json.loads((cache / "train.json").read_text())
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": True, "train_seconds": info["seconds"], "iterations": info["iterations_run"],
              "cache": str(cache)})
     else:
         res, data = train_supervised(split.train_inputs, shapes, config, cache, targets_2d=split.train_targets,
-                                     resume=not ctx.retrain, progress=ctx.progress)
+                                     resume=not ctx.retrain, progress=ctx.progress, images=images)
         model = res.model
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
              "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
-    out = []
-    for seq in split.test_inputs:
-        x, w = data.prepare_inputs(seq)
-        out.append(predict(model, x, w))
-    return out
+    return _predict(model, data, split)
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:
@@ -93,8 +114,9 @@ def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.n
     supervised network."""
     from baselines.labels import code_version, make_labels
 
-    labels = make_labels(split.train_inputs, solver, ctx.label_params.get(solver), out_dir=ctx.out_dir / "labels",
-                         dataset=split.tag, jobs=ctx.jobs, progress=ctx.progress)
+    labels = make_labels(split.train_inputs, solver, ctx.label_params.get(solver),
+                         out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=split.labels_tag or split.tag,
+                         jobs=ctx.jobs, progress=ctx.progress)
     s = labels.summary
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
@@ -119,7 +141,22 @@ def pr_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _plus_nn(split, ctx, "PR + NN", "pr")
 
 
-@register_method("GT 3D", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN's network supervised with ground-truth 3D "
+@register_method("CSF2 + CNN", ("rgb",), "PRN-CNN's network on CSF2's pseudo-3D labels (supervised)")
+def csf2_cnn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "CSF2 + CNN", "csf2")
+
+
+@register_method("SPM + CNN", ("rgb",), "PRN-CNN's network on SPM's pseudo-3D labels (supervised)")
+def spm_cnn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "SPM + CNN", "spm")
+
+
+@register_method("PR + CNN", ("rgb",), "PRN-CNN's network on PR's pseudo-3D labels (supervised)")
+def pr_cnn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "PR + CNN", "pr")
+
+
+@register_method("GT 3D", ("gt-ortho", "gt-persp", "sh", "rgb"), "PRN-FCN's network supervised with ground-truth 3D "
                                                              "(the upper bound)")
 def gt_3d(split: Split, ctx: RunContext) -> list[np.ndarray]:
     truth = [s.points_3d for s in split.train_targets]

@@ -23,6 +23,12 @@ from nrsfm.sequence import Sequence
 log = logging.getLogger(__name__)
 
 
+#: ``--quick``: the pseudo-labels' solvers with light settings, stated in each table's labels table: PR with one
+#: continuation stage of 100 iterations (a smoke run of the pipeline, not PR's accuracy), SPM's shape step by ADMM
+#: in place of cvxpy (the same labels to 0.01 mm on the synthetic humans, 16 times faster).
+QUICK_LABEL_PARAMS = {"pr": {"max_iter": 100, "stages": 1}, "spm": {"shape_solver": "admm"}}
+
+
 @dataclass
 class Split:
     """Train / test data of one input type.
@@ -31,8 +37,12 @@ class Split:
         train_inputs / train_targets: network inputs and the 2D the data term
             compares with (the same sequences unless e.g. SH inputs with GT 2D).
         test_inputs: test 2D; test_truth: the same frames with ``points_3d``.
-        input_type: ``gt-ortho``, ``gt-persp`` or ``sh``; sampling: group sampling.
+        input_type: ``gt-ortho``, ``gt-persp``, ``sh``, or ``rgb`` (images, with 2D for the data term and the
+            pseudo-labels); sampling: group sampling.
         tag: identifies the data (part of every cache key).
+        train_images / test_images: for ``rgb``, one image source per sequence (:mod:`prn.images`).
+        labels_tag: identifies the 2D the pseudo-labels are solved from (default ``tag``), so that tables on the
+            same 2D share them.
     """
 
     train_inputs: list[Sequence]
@@ -42,6 +52,9 @@ class Split:
     input_type: str
     sampling: str = "multiview"
     tag: str = ""
+    train_images: list | None = None
+    test_images: list | None = None
+    labels_tag: str = ""
 
 
 @dataclass
@@ -68,6 +81,8 @@ class RunContext:
     width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
     point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)
     label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels
+    network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
+    labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")
     timings: dict = field(default_factory=dict)
 
     def cache_dir(self, method: str, config: dict) -> Path:

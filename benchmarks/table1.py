@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
-from benchmarks.registry import RunContext, Split, methods
+from benchmarks.common import (add_training_arguments, labels_dir, markdown_table, run_metadata, run_table, write_csv,
+                               write_json)
+from benchmarks.registry import QUICK_LABEL_PARAMS, RunContext, Split, methods
 from nrsfm.datasets import h36m
 from nrsfm.errors import ValidationError
 from nrsfm.metrics import mpjpe_prn_per_frame
@@ -68,10 +69,9 @@ PAPER = {
 INPUTS = ("gt-ortho", "gt-persp", "sh")
 SYNTHETIC_FRAMES = 200
 QUICK_FRAMES = 60
-#: ``--quick``: three motion families, and PR's pseudo-labels with one continuation stage of 100 iterations (a
-#: smoke run of the pipeline, not PR's accuracy).
+#: ``--quick``: three motion families (the pseudo-labels' light settings are
+#: :data:`benchmarks.registry.QUICK_LABEL_PARAMS`).
 QUICK_MOTIONS = ("walking", "sitting_down", "waving")
-QUICK_LABEL_PARAMS = {"pr": {"max_iter": 100, "stages": 1}}
 #: The stand-in's motion families (None: all of them).
 SYNTHETIC_MOTIONS: tuple[str, ...] | None = None
 
@@ -217,9 +217,10 @@ def _run(args: argparse.Namespace) -> int:
         raise ValidationError(f"--c3dpo-iterations: expected >= 1, got {args.c3dpo_iterations}")
     if args.jobs < 1 or args.c3dpo_batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {args.c3dpo_batch}")
-    ctx = RunContext(out_dir=out, iterations=iterations, seed=args.seed, progress=not args.no_progress,
-                     device=args.device, retrain=args.retrain, jobs=args.jobs, c3dpo_batch=args.c3dpo_batch,
-                     c3dpo_iterations=args.c3dpo_iterations, c3dpo_rescale=args.c3dpo_rescale,
+    ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
+                     progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
+                     c3dpo_batch=args.c3dpo_batch, c3dpo_iterations=args.c3dpo_iterations,
+                     c3dpo_rescale=args.c3dpo_rescale,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],

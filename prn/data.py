@@ -72,6 +72,7 @@ class TrainingSet:
             sequence (C cameras); for the other samplings, `(1, T)` per sequence.
         sampling: one of :data:`SAMPLINGS`.
         description: what was loaded (for run metadata).
+        images: for PRN-CNN, one image per frame (:mod:`prn.images`), else None.
     """
 
     inputs: np.ndarray
@@ -82,6 +83,7 @@ class TrainingSet:
     sampling: str
     description: dict = field(default_factory=dict)
     input_points: np.ndarray | None = None  # indices of the input points kept (e.g. 16 of 17 for SH)
+    images: object = None  # PRN-CNN: an image source, (N, H, W, 3) uint8, one image per frame (prn.images)
 
     def prepare_inputs(self, seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """Normalised `(F, P_in, 2)` inputs and `(F, P_in)` weights of a test sequence, as in training."""
@@ -125,7 +127,8 @@ def _take_key(seq: Sequence) -> tuple[str, int]:
 
 
 def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = None, *,
-                       sampling: str = "multiview", drop_invisible_inputs: bool = True) -> TrainingSet:
+                       sampling: str = "multiview", drop_invisible_inputs: bool = True,
+                       images: list | None = None) -> TrainingSet:
     """Stack sequences into a :class:`TrainingSet`.
 
     Args:
@@ -138,12 +141,21 @@ def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = 
             with one stream row per ``meta['camera']``.
         drop_invisible_inputs: drop input points never visible in any frame
             (Neck/Nose for Stacked Hourglass: 16 inputs, 17 outputs).
+        images: for PRN-CNN, one image source per input sequence (`(F, H, W, 3)` uint8 arrays or lazy
+            sources, :mod:`prn.images`), frame for frame.
     """
     if sampling not in SAMPLINGS:
         raise ValidationError(f"sampling: expected one of {SAMPLINGS}, got {sampling!r}")
     targets = inputs if targets is None else targets
     if len(targets) != len(inputs) or not inputs:
         raise ValidationError(f"targets: expected one target sequence per input ({len(inputs)}), got {len(targets)}")
+    if images is not None:
+        if len(images) != len(inputs):
+            raise ValidationError(f"images: expected one image source per input sequence ({len(inputs)}), got "
+                                  f"{len(images)}")
+        for seq, im in zip(inputs, images):
+            if len(im) != seq.n_frames:
+                raise ValidationError(f"{seq.name}: {seq.n_frames} frames but {len(im)} images")
     keep = np.ones(inputs[0].n_points, bool)
     if drop_invisible_inputs:
         keep = np.any([(s.weights > 0).any(axis=0) for s in inputs], axis=0)
@@ -178,4 +190,11 @@ def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = 
                        target_weights=np.concatenate(yw), streams=streams, sampling=sampling,
                        description={"sequences": len(inputs), "frames": int(start), "streams": len(streams),
                                     "inputs": int(keep.sum()), "outputs": int(targets[0].n_points)},
-                       input_points=np.flatnonzero(keep))
+                       input_points=np.flatnonzero(keep),
+                       images=None if images is None else _stack_images(images))
+
+
+def _stack_images(sources: list):
+    from prn.images import stack_images
+
+    return stack_images(sources)

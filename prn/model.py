@@ -89,46 +89,34 @@ class PRNFCN(nn.Module):
 
 
 class PRNCNN(nn.Module):
-    """PRN-CNN: an image backbone feeding the FCN's head.
+    """PRN-CNN: an image backbone feeding the FCN's head (the paper: ResNet-50 features, 2048 x 7 x 7 at 224 px).
 
     Args:
         n_points: output points.
         backbone: a module mapping `(N, 3, H, W)` images to `(N, C, h, w)`
-            features; default: torchvision's ResNet-50 without its pooling and
-            classifier (ImageNet weights when ``pretrained`` and available
-            locally, random otherwise).
-        feature_dim: ``C * h * w`` of the backbone's output (2048 x 7 x 7 for
-            ResNet-50 at 224 x 224).
+            features, or the name of a torchvision ResNet (:data:`prn.images.BACKBONES`).
+        feature_dim: ``C * h * w`` of the backbone's output (default: measured on one ``image_size`` image).
+        pretrained: ImageNet weights for a named backbone when they are available locally.
     """
 
-    def __init__(self, n_points: int, *, backbone: nn.Module | None = None, feature_dim: int = 2048 * 7 * 7,
-                 width: int = 1024, pretrained: bool = False) -> None:
+    def __init__(self, n_points: int, *, backbone: nn.Module | str = "resnet50", feature_dim: int | None = None,
+                 image_size: int = 224, width: int = 1024, pretrained: bool = False) -> None:
         super().__init__()
-        if backbone is None:
-            backbone = resnet50_backbone(pretrained)
+        from prn import images
+
+        self.initialisation = "given module"
+        if isinstance(backbone, str):
+            backbone, self.initialisation = images.backbone(backbone, pretrained)
         self.backbone = backbone
+        self.n_points = n_points
+        feature_dim = feature_dim or images.feature_dim(backbone, image_size)
         self.inp = nn.Linear(feature_dim, width, bias=False)
         self.bn = nn.BatchNorm1d(width)
         nn.init.xavier_uniform_(self.inp.weight)
         self.head = Head(width, n_points)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValidationError(f"PRNCNN input: expected (N, 3, H, W) images, got {tuple(images.shape)}")
         f = self.backbone(images).flatten(1)
         return self.head(torch.relu(self.bn(self.inp(f))))
-
-
-def resnet50_backbone(pretrained: bool = False) -> nn.Module:
-    """torchvision ResNet-50 up to its last convolutional stage (`(N, 2048, 7, 7)` at 224 px)."""
-    try:
-        import torchvision
-    except Exception as exc:  # ImportError, or an operator mismatch with the installed torch
-        raise ValidationError(f"PRN-CNN needs torchvision matching your torch ({exc}); install it with "
-                              "'pip install torchvision' or pass backbone=") from None
-    weights = None
-    if pretrained:
-        try:
-            weights = torchvision.models.ResNet50_Weights.IMAGENET1K_V1
-        except AttributeError:
-            weights = None
-    net = torchvision.models.resnet50(weights=weights)
-    return nn.Sequential(*list(net.children())[:-2])

@@ -32,7 +32,7 @@ from nrsfm.device import pick_device
 from nrsfm.errors import NRSfMError, ValidationError
 from prn.data import TrainingSet
 from prn.loss import PRLossParts, pr_loss
-from prn.model import PRNFCN
+from prn.model import PRNCNN, PRNFCN
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,11 @@ class TrainConfig:
     points): every iteration the points are split at random into that many
     groups of equal size (the remainder sits the iteration out) and the PR
     loss is summed over them, each group aligned on its own points.
+
+    ``network``: ``"fcn"`` (PRN-FCN on 2D points) or a torchvision backbone
+    name (:data:`prn.images.BACKBONES`, ``"resnet50"`` as the paper) for
+    PRN-CNN on the training set's images; ``pretrained`` starts the backbone
+    from ImageNet weights when they are in torch's local cache.
     """
 
     iterations: int = 70_000
@@ -72,6 +77,8 @@ class TrainConfig:
     device: str = "auto"
     missing_points: float = 0.0
     point_groups: int = 1
+    network: str = "fcn"
+    pretrained: bool = True
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.groups < 1 or self.group_size < 2:
@@ -83,6 +90,8 @@ class TrainConfig:
             raise ValidationError(f"point_groups: expected an integer >= 1, got {self.point_groups}")
         if not 0 <= self.missing_points < 1:
             raise ValidationError(f"missing_points: expected a fraction in [0, 1), got {self.missing_points}")
+        if self.network != "fcn" and self.network not in _backbones():
+            raise ValidationError(f"network: expected 'fcn' or one of {_backbones()}, got {self.network!r}")
         if self.lam < 0 or self.lr <= 0:
             raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
 
@@ -94,6 +103,23 @@ class TrainConfig:
     def lr_at(self, iteration: int) -> float:
         local = iteration if iteration < self.phase_boundary else iteration - self.phase_boundary
         return self.lr * self.lr_decay ** (local // self.lr_step)
+
+
+def _backbones() -> tuple[str, ...]:
+    from prn.images import BACKBONES
+
+    return BACKBONES
+
+
+def build_model(config: TrainConfig, n_points: int, n_inputs: int, image_size: int | None = None) -> torch.nn.Module:
+    """PRN-FCN, or PRN-CNN for ``config.network`` other than ``"fcn"`` (images of side ``image_size``)."""
+    if config.network == "fcn":
+        return PRNFCN(n_points, n_inputs, config.width)
+    if image_size is None:
+        raise ValidationError(f"network {config.network!r}: the training set carries no images; pass images= to "
+                              "build_training_set, or train network='fcn'")
+    return PRNCNN(n_points, backbone=config.network, image_size=image_size, width=config.width,
+                  pretrained=config.pretrained)
 
 
 def _freeze_bn_stats(model: torch.nn.Module) -> None:
@@ -198,7 +224,10 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     device = pick_device(config.device)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    model = PRNFCN(data.n_points, data.n_inputs, config.width).to(device)
+    image_size = None if data.images is None else int(data.images.shape[1])
+    model = build_model(config, data.n_points, data.n_inputs, image_size).to(device)
+    if config.network != "fcn":
+        log.info("PRN-CNN backbone: %s", model.initialisation)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
     start, history = 0, []
     out = Path(out_dir) if out_dir is not None else None
@@ -223,6 +252,14 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         objective = objective.to(device)
     x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
     xw_all = torch.as_tensor(data.input_weights, dtype=torch.float32, device=device)
+
+    def forward(idx: torch.Tensor, xw: torch.Tensor) -> torch.Tensor:
+        if config.network == "fcn":
+            return model(x_all[idx], xw)
+        from prn.images import to_tensor
+
+        return model(to_tensor(data.images[idx.cpu().numpy()], device))
+
     y_all = torch.as_tensor(data.targets, dtype=torch.float32, device=device)
     yw_all = torch.as_tensor(data.target_weights, dtype=torch.float32, device=device)
     parts = PRLossParts()
@@ -240,7 +277,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             g["lr"] = config.lr_at(it)
         if objective is not None:
             idx = torch.as_tensor(objective.sample(rng), device=device)
-            loss = objective.loss(model(x_all[idx], xw_all[idx]), idx)
+            loss = objective.loss(forward(idx, xw_all[idx]), idx)
         else:
             idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
                                   device=device)
@@ -250,7 +287,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                 yw = yw * keep
                 if data.input_points is not None and len(data.input_points) == yw.shape[1]:
                     xw = xw * keep
-            pred, y = model(x_all[idx], xw), y_all[idx]
+            pred, y = forward(idx, xw), y_all[idx]
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
             loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size, parts=parts)
@@ -278,7 +315,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     run = max(end - start, 0)
     if out is not None and end == config.iterations:
         atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": data.n_points,
-                      "n_inputs": data.n_inputs, "history": history}, out / "model.pt")
+                      "n_inputs": data.n_inputs, "image_size": image_size, "history": history}, out / "model.pt")
         (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), "seconds": seconds,
                                                     "iterations_run": run, "data": data.description,
                                                     "history": history}, indent=1))
@@ -287,10 +324,13 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                        iterations_per_second=run / seconds if seconds > 0 else float("nan"))
 
 
-def load_model(path: str | os.PathLike, device: str = "auto") -> PRNFCN:
-    """Load ``model.pt`` written by :func:`train`."""
+def load_model(path: str | os.PathLike, device: str = "auto") -> torch.nn.Module:
+    """Load ``model.pt`` written by :func:`train` (PRN-FCN or PRN-CNN)."""
     state = torch.load(Path(path), map_location=pick_device(device), weights_only=False)
-    model = PRNFCN(state["n_points"], state["n_inputs"], state["config"]["width"])
+    cfg = state["config"]
+    config = TrainConfig(**{k: v for k, v in cfg.items() if k in TrainConfig.__dataclass_fields__})
+    model = build_model(dataclasses.replace(config, pretrained=False), state["n_points"], state["n_inputs"],
+                        state.get("image_size"))
     model.load_state_dict(state["model"])
     return model.to(pick_device(device)).eval()
 
@@ -308,4 +348,16 @@ def predict(model: PRNFCN, inputs: np.ndarray, input_weights: np.ndarray | None 
             w = None if input_weights is None else torch.as_tensor(input_weights[s:s + batch],
                                                                     dtype=torch.float32, device=device)
             out.append(model(x, w).double().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))
+
+
+@torch.no_grad()
+def predict_images(model: torch.nn.Module, images, batch: int = 64) -> np.ndarray:
+    """`(N, H, W, 3)` uint8 images (any image source, :mod:`prn.images`) -> `(N, P, 3)` normalised shapes."""
+    from prn.images import to_tensor
+
+    model.eval()
+    device = next(model.parameters()).device
+    out = [model(to_tensor(images[np.arange(s, min(s + batch, len(images)))], device)).double().cpu().numpy()
+           for s in range(0, len(images), batch)]
     return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))

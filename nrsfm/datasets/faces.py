@@ -74,6 +74,12 @@ def _frames(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix in suffixes)
 
 
+def _frame_number(path: Path, index: int) -> int:
+    """The 1-based frame number in a file's name (``000123.pts`` -> 123), else its position + 1."""
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else index + 1
+
+
 def load_300vw(video: str, root: str | os.PathLike | None = None, *, require_3d: bool = True) -> Sequence:
     """One 300-VW video ``NNN``: its 3D landmarks (``300vw-3d/NNN``) as the ground truth and their xy as the
     2D input; without 3D (``require_3d=False``) the 2D annotations of ``300vw/NNN/annot``."""
@@ -101,6 +107,17 @@ def load_300vw(video: str, root: str | os.PathLike | None = None, *, require_3d:
         raise DataFormatError(f"{folder}: expected one .pts file per frame, found none")
     return Sequence(points_2d=np.stack([read_pts(f) for f in files]), name=f"300vw-{video}",
                     edges=np.array(FACE_EDGES), fps=30.0, meta={**meta, "input": "annot"})
+
+
+def landmark_frames(video: str, root: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where the 3D landmarks of ``video`` sit in its frames: `(F,)` 1-based frame numbers (from the files' names,
+    else their order) and `(F, 2)` image positions of the landmarks' mean, frame for frame with :func:`load_300vw`."""
+    folder = find_dataset("300vw-3d", root) / video
+    files = _frames(folder, _EXTENSIONS_3D) if folder.is_dir() else []
+    if not files:
+        raise DataFormatError(f"300-VW video {video}: expected its 3D landmarks in {folder}")
+    centres = np.stack([_read_3d(f)[:, :2].mean(axis=0) for f in files])
+    return np.array([_frame_number(f, i) for i, f in enumerate(files)]), centres
 
 
 def list_300vw(root: str | os.PathLike | None = None) -> list[str]:

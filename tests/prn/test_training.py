@@ -63,8 +63,8 @@ def test_cnn_head_with_a_small_backbone():
 
 
 def test_cnn_with_the_torchvision_resnet50_trains_with_the_pr_loss():
-    """Runs where torchvision imports beside the installed torch (not the on-disk CPU wheel of CI; checked in a
-    venv with torch 2.14.1 + torchvision 0.29.1: forward, PR loss and backward through the full backbone)."""
+    """Forward, PR loss and backward through the full ResNet-50 (skipped where torchvision does not import beside
+    the installed torch)."""
     try:
         import torchvision  # noqa: F401
         torchvision.models.resnet50()
@@ -80,6 +80,37 @@ def test_cnn_with_the_torchvision_resnet50_trains_with_the_pr_loss():
     grads = [p.grad for p in net.backbone.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
     assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_prn_cnn_trains_on_rendered_images_saves_and_predicts(tmp_path):
+    """PRN-CNN end to end on the stand-in's rendered images: the loss falls, the model reloads with the same
+    predictions, and a configuration without images is refused."""
+    pytest.importorskip("torchvision")
+    from nrsfm.datasets.render import render_sequence
+    from prn.images import ImageStack
+    from prn.train import predict_images
+
+    seqs = human_sequences(("S1",), ("walking", "bending"), n_frames=60, takes=1)
+    images = [render_sequence(s, size=32) for s in seqs]
+    data = build_training_set(seqs, images=images, sampling="random")
+    assert data.images.shape == (len(data.inputs), 32, 32, 3)
+    config = TrainConfig(iterations=40, lr=1e-3, lr_step=1000, checkpoint_every=20, group_size=16, width=64,
+                         network="small", device="cpu")
+    res = train(data, config, tmp_path, progress=False, log_every=5)
+    first, last = res.history[0]["loss"], np.mean([h["loss"] for h in res.history[-3:]])
+    assert last < 0.7 * first
+    model = load_model(tmp_path / "model.pt", "cpu")
+    assert isinstance(model, PRNCNN)
+    np.testing.assert_allclose(predict_images(model, images[0]), predict_images(res.model, images[0]), atol=1e-5)
+    lazy = ImageStack(images)  # any indexable image source trains alike
+    np.testing.assert_array_equal(lazy[np.array([0, len(images[0]), 5])],
+                                  np.concatenate(images)[[0, len(images[0]), 5]])
+    with pytest.raises(ValidationError, match="carries no images"):
+        train(build_training_set(seqs, sampling="random"), config, None, progress=False)
+    with pytest.raises(ValidationError, match="network: expected 'fcn' or one of"):
+        TrainConfig(network="vgg")
+    with pytest.raises(ValidationError, match="one image source per input sequence"):
+        build_training_set(seqs, images=images[:1])
 
 
 @pytest.mark.parametrize("missing", [0.0, 0.2])  # 0.2: random point drops draw from torch's (device) RNG
