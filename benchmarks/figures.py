@@ -41,10 +41,10 @@ def limb_colours(edges, joint_names=None) -> list[str]:
 
 
 def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray], edges, joint_names=None, *,
-                title: str = "", elev: float = 15.0, azim: float = -70.0) -> None:
-    """Rows: test frames; columns: the 2D input, then every entry of ``shapes`` (name -> `(n, P, 3)`, the ground
-    truth among them, last by convention), in millimetres, camera frame (x right, y down, z away). Without
-    ``edges`` the points are drawn as dots, coloured by depth in 3D."""
+                title: str = "", elev: float = 15.0, azim: float = -70.0, images: np.ndarray | None = None) -> None:
+    """Rows: test frames; columns: the 2D input (or the input image, ``images`` `(n, H, W, 3)` uint8), then every
+    entry of ``shapes`` (name -> `(n, P, 3)`, the ground truth among them, last by convention), in millimetres,
+    camera frame (x right, y down, z away). Without ``edges`` the points are drawn as dots, coloured by depth."""
     plt = pyplot()
     n = len(inputs_2d)
     names = list(shapes)
@@ -54,17 +54,20 @@ def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray]
     fig = plt.figure(figsize=(2.3 * (len(names) + 1), 2.3 * n))
     for r in range(n):
         ax = fig.add_subplot(n, len(names) + 1, r * (len(names) + 1) + 1)
-        x = inputs_2d[r]
-        for (a, b), c in zip(edges, colours):
-            ax.plot(x[[a, b], 0], x[[a, b], 1], color=c, lw=1.5)
-        if dots:
-            ax.scatter(x[:, 0], x[:, 1], s=1, c=CENTRE)
-        ax.set_aspect("equal")
-        ax.invert_yaxis()
+        if images is not None:
+            ax.imshow(images[r])
+        else:
+            x = inputs_2d[r]
+            for (a, b), c in zip(edges, colours):
+                ax.plot(x[[a, b], 0], x[[a, b], 1], color=c, lw=1.5)
+            if dots:
+                ax.scatter(x[:, 0], x[:, 1], s=1, c=CENTRE)
+            ax.set_aspect("equal")
+            ax.invert_yaxis()
         ax.set_xticks([])
         ax.set_yticks([])
         if r == 0:
-            ax.set_title("2D input", fontsize=8)
+            ax.set_title("input image" if images is not None else "2D input", fontsize=8)
         frame = np.stack([shapes[k][r] - shapes[k][r].mean(axis=0) for k in names])  # (M, P, 3)
         half = np.abs(frame).max()  # one cube for every method of this frame
         for j, name in enumerate(names):

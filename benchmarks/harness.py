@@ -192,13 +192,16 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
     if args.plots and results:
         from benchmarks import figures
 
-        shown = [n for n in ("PRN-FCN", "C3DPO", "PR + NN", "CSF2 + NN", "PRN w/o reg") if n in results][:2]
+        shown = [n for n in ("PRN-FCN", "PRN-CNN", "C3DPO", "PR + NN", "SPM + CNN", "PR + CNN", "CSF2 + NN",
+                             "CSF2 + CNN", "PRN w/o reg") if n in results][:2]  # PRN and the best baseline
         frames = figures.pick_frames(split.test_truth)
         shapes = figures.shapes_for_frames({n: predictions[n] for n in shown}, split.test_truth, frames)
         seq = split.test_truth[0]
+        images = None if split.test_images is None else np.stack([split.test_images[i][np.array([t])][0]
+                                                                  for i, t in frames])
         figures.qualitative(out / f"{spec.name}_qualitative.png",
                             np.stack([split.test_inputs[i].points_2d[t] for i, t in frames]), shapes, seq.edges,
-                            seq.joint_names, title=f"{spec.title} ({desc.get('data')}): test frames")
+                            seq.joint_names, title=f"{spec.title} ({desc.get('data')}): test frames", images=images)
         figures.training_curves(out / f"{spec.name}_curves.png", {k: Path(v["cache"]) for k, v in ctx.timings.items()
                                                                  if "cache" in v}, title=f"{spec.title}: training loss")
         written += f", {spec.name}_qualitative.png, {spec.name}_curves.png"
