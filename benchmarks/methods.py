@@ -171,9 +171,22 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     from nrsfm.metrics import mpjpe_best_flip, stress
     from prn.data import denormalize, normalize_2d
 
+    if ctx.c3dpo_inputs not in ("prn", "centred"):
+        raise ValueError(f"c3dpo_inputs: expected 'prn' or 'centred', got {ctx.c3dpo_inputs!r}")
+    # "centred" (the authors'): every frame keeps its size, all divided by one scale, the training frames' median
+    # xy norm; "prn": each frame divided by its own xy norm, as the other rows see them
+    unit = float(np.median(np.concatenate([normalize_2d(s.points_2d, s.visibility)[1] for s in split.train_inputs])))
+
     def normalised(seqs):  # every point, the never-detected ones with visibility 0 (C3DPO reads visibility)
-        return (np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]),
-                np.concatenate([s.weights for s in seqs]))
+        if ctx.c3dpo_inputs == "prn":
+            return (np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]),
+                    np.concatenate([s.weights for s in seqs]))
+        w = np.concatenate([s.weights for s in seqs])
+        return np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None] / unit, w
+
+    def to_prn_units(pred, seq):  # the harness takes predictions in PRN's per-frame units
+        return pred if ctx.c3dpo_inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][
+            :, None, None]
 
     inputs, weights = normalised(split.train_inputs)
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
@@ -182,7 +195,8 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
                          seed=ctx.seed, device=ctx.device,
                          checkpoint_every=max(100, iterations // 20))
     cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,
-                                    "input": split.input_type})
+                                    "input": split.input_type,
+                                    **({"inputs": ctx.c3dpo_inputs} if ctx.c3dpo_inputs != "prn" else {})})
     key = f"C3DPO ({split.input_type})"
     if (cache / "model.pt").exists() and not ctx.retrain:
         model = load_c3dpo(cache / "model.pt", ctx.device)
@@ -193,7 +207,7 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
         model, info = train_c3dpo(inputs, weights, config, cache, resume=not ctx.retrain, progress=ctx.progress)
         ctx.timings[key] = {"cached": False, "train_seconds": info["seconds"], "iterations": iterations,
                             "cache": str(cache)}
-    preds = [predict_c3dpo(model, *normalised([seq])) for seq in split.test_inputs]
+    preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
     # C3DPO's own protocol beside the table's: root-centred MPJPE, better of raw and depth-flipped, and stress
     pred_mm = np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
     truth_mm = np.concatenate([t.points_3d for t in split.test_truth])

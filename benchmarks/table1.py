@@ -190,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                                                                    "128 with --quick)")
     p.add_argument("--c3dpo-rescale", type=float, default=1.0,
                    help="C3DPO's keypoint_rescale: the PRN-normalised keypoints are multiplied by it (default 1)")
+    p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="prn",
+                   help="C3DPO's inputs: PRN's (each frame divided by its xy norm; default) or the authors' (centred, "
+                        "one scale for all frames, so a frame's size stays a cue)")
     p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
                                                         "qualitative, per-action bars, training curves")
     add_training_arguments(p)
@@ -220,7 +223,7 @@ def _run(args: argparse.Namespace) -> int:
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
                      progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
                      c3dpo_batch=args.c3dpo_batch, c3dpo_iterations=args.c3dpo_iterations,
-                     c3dpo_rescale=args.c3dpo_rescale,
+                     c3dpo_rescale=args.c3dpo_rescale, c3dpo_inputs=args.c3dpo_inputs,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],

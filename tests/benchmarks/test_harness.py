@@ -367,3 +367,19 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     assert all(r["status"] == "not run" for r in rank3 if r["missing"] > 0)  # needs complete tracks: said so
     assert "csf2, 20% missing: default within 10% of the best fixed K on" in text
     assert "not run:" in text
+
+
+def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys, monkeypatch):
+    """With ``--c3dpo-inputs centred`` C3DPO trains on frames that keep their size; its test predictions come back
+    in PRN's per-frame units: the image coordinates of visible points equal the PRN-normalised input."""
+    from benchmarks.methods import c3dpo
+    from benchmarks.registry import RunContext, Split
+    from nrsfm.datasets.synthetic import human_sequences
+    from prn.data import normalize_2d
+
+    seqs = human_sequences(["S1"], n_frames=20, takes=1, seed=0, motions=("walking",))
+    split = Split(seqs, seqs, seqs[:1], seqs[:1], "gt-ortho", tag="tiny")
+    ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred")
+    pred = c3dpo(split, ctx)[0]
+    np.testing.assert_allclose(pred[..., :2], normalize_2d(seqs[0].points_2d)[0], atol=1e-5)
+    assert any("C3DPO" in p.name for p in (tmp_path / "cache").iterdir())
