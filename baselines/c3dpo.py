@@ -23,8 +23,10 @@ of 1,249,280 samples with the lr divided by 10 after epochs 60 and 80: about 110
 (:data:`PAPER_ITERATIONS`); :class:`C3DPOConfig` scales the milestones with ``iterations``. Weights start as in
 their code: 1x1 convolutions normal(0, 0.01), biases 0, batch-norm scales uniform(0, 1).
 
-Departure: the inputs are normalised as PRN's (centred on the visible points, divided by their xy Frobenius
-norm), so that every row of a table sees the same inputs; the authors centre only.
+Inputs as the authors': keypoints centred on the visible ones, every frame divided by one scale (the benchmark
+harness uses the training frames' median xy norm), so that a frame's size stays a cue; dividing each frame by its
+own xy norm, as PRN's inputs are, makes the same body change size with the viewpoint, which a linear shape basis
+with a rotation cannot fit (both are measured in benchmarks/RESULTS.md; ``--c3dpo-inputs prn`` selects PRN's).
 """
 
 from __future__ import annotations

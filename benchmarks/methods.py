@@ -196,7 +196,7 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
                          checkpoint_every=max(100, iterations // 20))
     cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,
                                     "input": split.input_type,
-                                    **({"inputs": ctx.c3dpo_inputs} if ctx.c3dpo_inputs != "prn" else {})})
+                                    "inputs": ctx.c3dpo_inputs})
     key = f"C3DPO ({split.input_type})"
     if (cache / "model.pt").exists() and not ctx.retrain:
         model = load_c3dpo(cache / "model.pt", ctx.device)

@@ -77,7 +77,7 @@ class RunContext:
     c3dpo_batch: int = 1024
     c3dpo_iterations: int | None = None
     c3dpo_rescale: float = 1.0
-    c3dpo_inputs: str = "prn"  # "prn": PRN's per-frame normalisation; "centred": the authors' (one global scale)
+    c3dpo_inputs: str = "centred"  # the authors' (centred, one global scale); "prn": each frame by its xy norm
     missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
     width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
     point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)

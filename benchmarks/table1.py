@@ -189,10 +189,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--c3dpo-batch", type=int, default=None, help="C3DPO's minibatch (default: the authors' 1024; "
                                                                    "128 with --quick)")
     p.add_argument("--c3dpo-rescale", type=float, default=1.0,
-                   help="C3DPO's keypoint_rescale: the PRN-normalised keypoints are multiplied by it (default 1)")
-    p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="prn",
-                   help="C3DPO's inputs: PRN's (each frame divided by its xy norm; default) or the authors' (centred, "
-                        "one scale for all frames, so a frame's size stays a cue)")
+                   help="C3DPO's keypoint_rescale: the centred keypoints are multiplied by it (default 1)")
+    p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
+                   help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
+                        "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
     p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
                                                         "qualitative, per-action bars, training curves")
     add_training_arguments(p)
