@@ -457,10 +457,12 @@ def _mean_step(mean: torch.Tensor, mu: torch.Tensor, moment, step: float):
     for _ in range(40):
         trial = mean - step * grad
         trial = trial / trial.norm()
+        if not bool(torch.isfinite(trial).all()):  # degenerate shapes (e.g. collinear points): no usable step
+            break
         try:
             with torch.no_grad():
                 jt, aux_t = pnd_cost(trial, mu, moment)
-        except SolverError:  # a trial where the covariance is singular: a failed step
+        except (SolverError, torch.linalg.LinAlgError):  # a trial where the covariance is singular: a failed step
             step *= 0.5
             continue
         if float(jt) <= j0 - 1e-4 * step * g2:
