@@ -8,9 +8,8 @@ missing in training and test.
 The supplementary material's protocol: every point goes missing at random with the given probability, in
 training (each sample draws its own points: 0 in the input, weight 0 in the data term; ``TrainConfig.
 missing_points``) and in test (a fixed draw per sequence, :func:`nrsfm.datasets.synthetic.drop_entries`, so
-every method and run sees the same test points). A frame is normalised on its visible points, in training as in
-test, and its prediction scaled back by the input's own norm (:func:`in_input_scale`). The error is the PRN
-protocol's MPJPE over all 17 joints, the missing ones included (the network predicts every joint). Data, splits, rows and the cache of trained
+every method and run sees the same test points). The error is the PRN protocol's MPJPE over all 17 joints,
+the missing ones included (the network predicts every joint). Data, splits, rows and the cache of trained
 models are those of :mod:`benchmarks.table1`; one model is trained per row and ratio.
 """
 
@@ -42,16 +41,6 @@ def missing_split(split: Split, ratio: float) -> Split:
     """``split`` with ``ratio`` of the test entries marked missing (the same entries in every run)."""
     return Split(split.train_inputs, split.train_targets, [drop_entries(s, ratio) for s in split.test_inputs],
                  split.test_truth, split.input_type, split.sampling, split.tag)
-
-
-def in_input_scale(preds: list[np.ndarray], split: Split) -> list[np.ndarray]:
-    """Predictions rescaled so that the harness's de-normalisation (by the ground truth's xy norm over every
-    joint) scales them by the input's own norm over its visible points instead: the inverse of the input's
-    normalisation, known at test time; the same where no point is missing."""
-    from prn.data import normalize_2d, normalize_3d
-
-    return [p * (normalize_2d(i.points_2d, i.visibility)[1] / normalize_3d(t.points_3d)[1])[:, None, None]
-            for p, i, t in zip(preds, split.test_inputs, split.test_truth)]
 
 
 def _ratios(text: str) -> tuple[float, ...]:
@@ -107,7 +96,7 @@ def _run(args: argparse.Namespace) -> int:
         for name in names:
             log.info("table_s1: %s with %.0f%% of the points missing ...", name, 100 * ratio)
             preds = registry[name].run(test, ctx)
-            results[(name, ratio)] = evaluate(in_input_scale(preds, test), test.test_truth)
+            results[(name, ratio)] = evaluate(preds, test.test_truth)
         timings[str(ratio)] = ctx.timings
 
     header = ["Method"] + [f"{100 * r:g}%" for r in ratios]

@@ -48,9 +48,7 @@ class TrainConfig:
     ``missing_points`` > 0 reproduces the missing-points experiment
     (supplementary Table 1): in every training sample each point goes missing
     with that probability, set to 0 in the input and given weight 0 in the
-    data term (the same points, as inputs and outputs correspond one to one),
-    and the sample's input and target are normalised again on the points left
-    (:func:`renormalise`), as a test frame with missing points is.
+    data term (the same points, as inputs and outputs correspond one to one).
 
     ``point_groups`` > 1 is the paper's recipe for dense shapes (SURREAL, 6,890
     points): every iteration the points are split at random into that many
@@ -203,17 +201,6 @@ def _point_groups(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, k: int):
     return split(pred), split(y), split(w)
 
 
-def renormalise(points: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """`(N, P, 2)` normalised points centred on, and divided by the xy norm of, the points of nonzero `(N, P)`
-    weight (the others set to 0): :func:`prn.data.normalize_2d` of the visible points, so that a training sample
-    with dropped points is normalised as a test frame with those points missing."""
-    w = (weights > 0).to(points.dtype).unsqueeze(-1)
-    centre = (points * w).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True).clamp_min(1.0)
-    c = (points - centre) * w
-    scale = c.flatten(1).norm(dim=1).clamp_min(1e-12)
-    return c / scale[:, None, None]
-
-
 @contextlib.contextmanager
 def no_denormals():
     """Flush denormal floats to zero inside the block, restoring the default after.
@@ -266,9 +253,9 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
     xw_all = torch.as_tensor(data.input_weights, dtype=torch.float32, device=device)
 
-    def forward(idx: torch.Tensor, xw: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(idx: torch.Tensor, xw: torch.Tensor) -> torch.Tensor:
         if config.network == "fcn":
-            return model(x_all[idx] if x is None else x, xw)
+            return model(x_all[idx], xw)
         from prn.images import to_tensor
 
         return model(to_tensor(data.images[idx.cpu().numpy()], device))
@@ -295,15 +282,12 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
                                   device=device)
             xw, yw = xw_all[idx], yw_all[idx]
-            x, y = x_all[idx], y_all[idx]
             if config.missing_points > 0:
                 keep = (torch.rand(len(idx), yw.shape[1], device=device) >= config.missing_points).to(yw.dtype)
                 yw = yw * keep
                 if data.input_points is not None and len(data.input_points) == yw.shape[1]:
                     xw = xw * keep
-                # as a test frame with missing points is normalised: on its visible points
-                x, y = renormalise(x, xw), renormalise(y, yw)
-            pred = forward(idx, xw, x)
+            pred, y = forward(idx, xw), y_all[idx]
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
             loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size, parts=parts)

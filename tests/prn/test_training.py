@@ -194,15 +194,3 @@ def test_point_groups_split_every_frame_alike_and_train():
     assert np.isfinite(res.history[-1]["loss"])
     with pytest.raises(ValidationError, match="point_groups"):
         TrainConfig(point_groups=0)
-
-
-def test_renormalise_matches_the_test_time_normalisation_of_visible_points():
-    from prn.train import renormalise
-
-    rng = np.random.default_rng(0)
-    raw = rng.normal(size=(5, 17, 2)) * 300 + 50
-    vis = rng.random((5, 17)) > 0.2
-    full, _ = normalize_2d(raw)  # as training stores it: every point
-    expected, _ = normalize_2d(raw, vis.astype(float))  # as a test frame with those points missing
-    got = renormalise(torch.as_tensor(full), torch.as_tensor(vis.astype(float))).numpy()
-    np.testing.assert_allclose(got, expected, atol=1e-12)
