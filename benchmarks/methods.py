@@ -94,7 +94,7 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)
-        data = build_training_set(split.train_inputs, split.train_targets, sampling="random", images=images)
+        data = build_training_set(split.train_inputs, split.train_targets, sampling="random")  # for test inputs
         info = json.loads((cache / "train.json").read_text())
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": True, "train_seconds": info["seconds"], "iterations": info["iterations_run"],
@@ -175,7 +175,8 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
         raise ValueError(f"c3dpo_inputs: expected 'prn' or 'centred', got {ctx.c3dpo_inputs!r}")
     # "centred" (the authors'): every frame keeps its size, all divided by one scale, the training frames' median
     # xy norm; "prn": each frame divided by its own xy norm, as the other rows see them
-    unit = float(np.median(np.concatenate([normalize_2d(s.points_2d, s.visibility)[1] for s in split.train_inputs])))
+    unit = 1.0 if ctx.c3dpo_inputs == "prn" else float(np.median(np.concatenate(
+        [normalize_2d(s.points_2d, s.visibility)[1] for s in split.train_inputs])))
 
     def normalised(seqs):  # every point, the never-detected ones with visibility 0 (C3DPO reads visibility)
         if ctx.c3dpo_inputs == "prn":

@@ -84,7 +84,7 @@ def load(args: argparse.Namespace) -> tuple[Split, dict]:
     s = splits["gt-persp"]
     root = find_dataset("h36m", args.root)
     cams = load_cameras(root / "cameras.h5")
-    stride = desc["stride"] * (5 if desc["stride"] == 1 else 1)  # video frames per pose: 5 at 10 fps, stride at 50
+    stride = 5 if desc["stride"] == 1 else desc["stride"]  # video frames per pose: a 10 fps copy is every 5th
 
     def with_frames(seqs):
         keep, images, missing = [], [], []
