@@ -19,6 +19,10 @@ A solver that fails on a cut, or returns shapes that are not finite or whose dep
 ``DIVERGED_DEPTH`` times the 2D spread, is recorded as failed; those frames get no label and are left out of
 training (counted in the summary), never replaced.
 
+Solver settings: each solver's defaults, except that CSF2 and SPM choose K by their one-solve rank rules
+(:data:`LABEL_DEFAULTS`): their default agreement rule (:mod:`nrsfm.solvers.kselect`) solves every K and EM-PND
+besides, six solves per 17-joint cut in place of one. ``--set`` overrides them.
+
 Depth reflection. Orthographic NRSfM recovers each cut up to a global reflection ``z -> -z``, and labels of
 mixed handedness would teach a network to flatten the depth. A mirror image negates the signed volume of every
 four points; each cut is summarised by the mean signed volumes of the 4-point tuples whose volume keeps its sign
@@ -293,6 +297,10 @@ def resolve_reflections(reconstructions: list[np.ndarray], n_tuples: int = 40, i
     return flips
 
 
+#: The label pipeline's settings where they differ from a solver's defaults (the module docstring).
+LABEL_DEFAULTS = {"csf2": {"k_rule": "rank"}}
+
+
 def make_labels(sequences: list[Sequence], method: str, params: dict | None = None, *,
                 out_dir: str | os.PathLike, dataset: str, gap: int = 5, jobs: int = 1, backend: str = "loky",
                 scheduler: str | None = None, progress: bool = True, rerun: bool = False) -> LabelSet:
@@ -307,6 +315,7 @@ def make_labels(sequences: list[Sequence], method: str, params: dict | None = No
         raise ValidationError("make_labels: expected orthographic tracks (the paper's +NN baselines use the "
                               "GT-ortho input); convert perspective tracks with seq.to_weak_perspective() first")
     t0 = time.perf_counter()
+    params = {**LABEL_DEFAULTS.get(method, {}), **(params or {})}
     cuts = multiview_cuts(sequences, gap)
     shapes, failed, reused = solve_cuts(cuts, method, params, out_dir=out_dir, dataset=dataset, jobs=jobs,
                                         backend=backend, scheduler=scheduler, progress=progress, rerun=rerun)

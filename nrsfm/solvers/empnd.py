@@ -87,7 +87,7 @@ class EMPNDParams:
             tracks only). ``"auto"`` (default): with every point visible, the factorisation start (and, with
             ``probe_iter > 0``, also CSF2's: EM runs ``probe_iter`` iterations from each and goes on from the one
             with the lower PND cost); with missing points, CSF2.
-        init_K: CSF2's K for the ``"csf2"`` start (0: CSF2's automatic rule).
+        init_K: CSF2's K for the ``"csf2"`` start (0: CSF2's rank rule).
         init_rounds: camera rounds of that start when points are missing, one run of 5 X/S iterations per round
             (CSF2's own defaults: 200 rounds, two runs of 20 and 5): EM needs only a rough start.
         probe_iter: iterations of each start before ``"auto"`` picks one (0: factorisation only; ``max_iter``: both

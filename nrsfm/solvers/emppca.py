@@ -52,7 +52,7 @@ class EMPPCAParams:
             iterations falls below it.
         rotation_steps: majorisation steps of the camera update per iteration.
         seed: initialisation of the deformation modes.
-        init: ``"csf2"`` or ``"rigid"`` start; init_K: CSF2's K for the start (0: CSF2's automatic rule).
+        init: ``"csf2"`` or ``"rigid"`` start; init_K: CSF2's K for the start (0: CSF2's rank rule).
         procrustean: project the modes off the rotations/translations of the mean after every M-step (the
             first-order PND constraint). Off by default: on exact low-rank data the projection biases the fit.
     """

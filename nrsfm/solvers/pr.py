@@ -23,7 +23,7 @@ Two regularisers (``regulariser``), the two the PRN paper names (Sec. 3.3):
   ``regulariser=nuclear centre=false init=rigid`` is the TIP paper's formulation.
 
 Missing points: their x, y are free variables like the depths. The tracks are first completed: exactly where the
-visible entries are exactly low-rank (noise-free tracks), else by a rank-3K imputation (CSF2's automatic K). The
+visible entries are exactly low-rank (noise-free tracks), else by a rank-3K imputation (CSF2's rank-rule K). The
 completion fixes the objective (each frame's centring, the scale and ``delta``). On imputed tracks the free
 variables then start from CSF2's occlusion-aware reconstruction (``start_rounds`` camera rounds), which fits the
 visible entries only, since the imputation can be far off where a point is missing long. Sequences too small for
@@ -66,7 +66,7 @@ class PRParams:
         centre: regularise the aligned shapes minus their mean shape (default) or the aligned shapes.
         delta_rel: log-determinant offset relative to the largest singular value of the start.
         init: ``"csf2"`` (default: CSF2's reconstruction) or ``"rigid"`` (the rank-3 factorisation).
-        init_K: CSF2's K for the start (0: CSF2's automatic rule; with missing points the rule runs once on the
+        init_K: CSF2's K for the start (0: CSF2's rank rule; with missing points the rule runs once on the
             visible entries, not on the completion, whose W is never exactly low-rank).
         smoothing_start / smoothing_end: relative smoothing ``e / s_max`` of the nuclear norm at the first and last
             continuation stage.
@@ -74,7 +74,7 @@ class PRParams:
         max_iter: L-BFGS iterations (per stage for the nuclear norm).
         tol: L-BFGS relative function tolerance.
         impute_rank: rank of the measurement-matrix completion (:func:`~nrsfm.lowrank.complete_lowrank`) used to
-            initialise missing points (0: 3K with CSF2's automatic K, the rank CSF2 imputes with).
+            initialise missing points (0: 3K with CSF2's rank-rule K, the rank CSF2 imputes with).
         start_rounds: with missing points on tracks that are not exactly low-rank, the free variables start from
             CSF2's occlusion-aware reconstruction cut to this many camera rounds (module docstring, "Missing
             points"); 0: from CSF2 on the imputed tracks.

@@ -142,7 +142,7 @@ def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
 def csf2_reconstruction(seq: Sequence, K: int = 0, **overrides: Any) -> Reconstruction:
     """CSF2's :class:`~nrsfm.reconstruction.Reconstruction` of ``seq`` without the registry's input checks and
     timing (the caller has checked ``seq``): cameras and shapes for the solvers that start from both (EM-PPCA).
-    ``overrides``: other CSF2 parameters."""
+    ``overrides``: other CSF2 parameters (``K = 0``: CSF2's rank rule unless ``k_rule`` says otherwise)."""
     spec = get_solver("csf2")
-    return spec.solve.__wrapped__(seq, spec.params(K=K, **overrides))
+    return spec.solve.__wrapped__(seq, spec.params(K=K, **{"k_rule": "rank", **overrides}))
 

@@ -38,7 +38,7 @@ def test_csf2_occlusion_ranks_the_shape_starts_on_the_visible_entries():
 def test_csf2_in_pixel_units_and_with_the_automatic_k():
     seq = lowrank_sequence(120, 25, 2, seed=1, cameras="random")
     pixels = seq.replace(points_2d=500 * seq.points_2d + 320.0, points_3d=500 * seq.points_3d)
-    rec = solve(pixels, "csf2", d=60)
+    rec = solve(pixels, "csf2", d=60, k_rule="rank")
     assert rec.info["K"] == 2  # rank 6 -> ceil(6 / 3), 3 divides it
     assert rec.converged and e3d(rec.points_3d, pixels.points_3d) < 1e-3
 
@@ -47,8 +47,8 @@ def test_csf2_second_shape_start_rescues_a_short_nearly_rigid_face():
     from nrsfm.datasets.synthetic import face_sequences
 
     seq = face_sequences(3, 150)[2]  # exact cameras from step 1; X = I stops in a poor minimum of the shape step
-    authors = solve(seq, "csf2", residual_start=False, random_starts=0)
-    rec = solve(seq, "csf2", random_starts=0)
+    authors = solve(seq, "csf2", residual_start=False, random_starts=0, k_rule="rank")
+    rec = solve(seq, "csf2", random_starts=0, k_rule="rank")
     assert authors.info["shape_start"] == "identity" and e3d(authors.points_3d, seq.points_3d) > 0.5
     assert rec.info["shape_start"] == "residual" and rec.info["rmse"] < 0.9 * authors.info["rmse"]
     assert e3d(rec.points_3d, seq.points_3d) < 0.01
@@ -56,8 +56,8 @@ def test_csf2_second_shape_start_rescues_a_short_nearly_rigid_face():
 
 def test_csf2_random_shape_start_rescues_a_poor_minimum_of_both_deterministic_starts():
     seq = lowrank_sequence(300, 41, 4, cameras="smooth", seed=1, name="smooth:4:1:0")  # as in benchmarks.studies.auto_k
-    without = solve(seq, "csf2", random_starts=0)
-    rec = solve(seq, "csf2")
+    without = solve(seq, "csf2", random_starts=0, k_rule="rank")
+    rec = solve(seq, "csf2", k_rule="rank")
     assert rec.info["K"] == without.info["K"] == 4
     assert without.info["shape_start"] in ("identity", "residual") and e3d(without.points_3d, seq.points_3d) > 0.2
     assert rec.info["shape_start"].startswith("random") and rec.info["rmse"] < 0.5 * without.info["rmse"]
@@ -66,7 +66,8 @@ def test_csf2_random_shape_start_rescues_a_poor_minimum_of_both_deterministic_st
 
 def test_csf2_random_start_is_kept_only_below_random_accept():
     seq = lowrank_sequence(300, 41, 4, cameras="smooth", seed=1, name="smooth:4:1:0")
-    rec = solve(seq, "csf2", random_accept=0.1)  # the random start's fit, 0.18 of the RMSE, is not low enough
+    # the random start's fit, 0.18 of the RMSE, is not low enough
+    rec = solve(seq, "csf2", random_accept=0.1, k_rule="rank")
     assert rec.info["shape_start"] in ("identity", "residual")
     with pytest.raises(ValidationError, match="random_accept"):
         solve(seq, "csf2", random_accept=0.0)
@@ -88,7 +89,7 @@ def test_csf2_gauss_newton_decreases_the_column_space_cost_to_zero_on_exact_data
 
 def test_csf2_occlusion_aware_and_auto_rank():
     seq = lowrank_sequence(150, 30, 2, seed=3, cameras="random", missing=0.2)
-    rec = solve(seq, "csf2", d=75)
+    rec = solve(seq, "csf2", d=75, k_rule="rank")
     assert rec.info["K"] >= 2
     assert e3d(rec.points_3d, seq.points_3d) < 0.02
 
@@ -113,7 +114,7 @@ def test_csf2_occlusion_rounds_return_their_lowest_rmse_round(monkeypatch):
     monkeypatch.setattr(csf2, "_occlusion_rounds", marking)
     # noisy tracks: imputed, then refined in rounds (noise-free ones are completed exactly and need no rounds)
     seq = face_sequences(4, 150, noise=1e-3, missing=0.2)[0]
-    rec = solve(seq, "csf2", round_iter_alt=0)
+    rec = solve(seq, "csf2", round_iter_alt=0, k_rule="rank")
     assert rec.info["completion"] == "imputed"
     rounds = seen[start[0]:]  # the calls before are the refinements of the shape starts (and their probes)
     assert len(rounds) > 10 and rounds[-1] > min(rounds)  # the RMSE rose again before the rounds stopped

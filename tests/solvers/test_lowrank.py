@@ -39,7 +39,7 @@ def test_exact_completion_of_noise_free_tracks():
     filled, how = complete_lowrank(w, mask, 12, (rank, b))
     assert how == "exact"
     assert np.abs(filled - truth).max() < 1e-4 * np.abs(truth).max()
-    rec, ref = solve(seq, "csf2"), solve(complete, "csf2")
+    rec, ref = solve(seq, "csf2", k_rule="rank"), solve(complete, "csf2", k_rule="rank")
     assert rec.info["completion"] == "exact" and rec.info["K"] == ref.info["K"] == 4
     assert abs(e3d(rec.points_3d, seq.points_3d) - e3d(ref.points_3d, complete.points_3d)) < 1e-4
 
@@ -75,7 +75,7 @@ def test_noise_visible_rank_finds_the_noise_floor_with_missing_points():
     seq = lowrank_sequence(150, 30, 3, cameras="smooth", seed=2, noise=0.01, missing=0.2)
     w, mask = seq.measurement_matrix(), np.repeat(seq.weights > 0, 2, axis=0)
     assert noise_visible_rank(w, mask, 18) == 9
-    rec = solve(seq, "csf2")  # auto_k: 9 = 3K
+    rec = solve(seq, "csf2", k_rule="rank")  # auto_k: 9 = 3K
     assert rec.info["K"] == 3 and e3d(rec.points_3d, seq.points_3d) < 0.05
     assert e3d(solve(seq, "csf2", K=8).points_3d, seq.points_3d) > 0.3
     rng = np.random.default_rng(1)

@@ -1,0 +1,68 @@
+"""Choosing a solver's number of basis shapes K by agreement with a reconstruction that needs no K.
+
+The rule (``k_rule="agreement"`` of CSF2 and SPM, their default with ``K = 0``):
+
+1. reconstruct the sequence once with EM-PND at its defaults (:mod:`nrsfm.solvers.empnd`: a Procrustean normal
+   distribution, no K), the *reference*;
+2. solve with every K from 1 to 12 with 3K < min(2F, P) (the fixed Ks that ``benchmarks.defaults`` sweeps);
+3. keep the K whose camera-frame shapes are nearest the reference's: the e3D between the two
+   (:func:`nrsfm.metrics.e3d`, one global rotation or reflection, divided by the reference's scale).
+
+No ground truth enters and nothing depends on a name. A K whose solution fell into a poor minimum disagrees with
+the reference and is passed over; so is a K too small to hold the motion. Cost: one EM-PND solve plus one solve
+per K (five on 17 joints, twelve on 37 or more points). The rank rules (``k_rule="rank"`` for CSF2,
+``"energy"`` for SPM) cost one solve; the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use CSF2's rank
+rule. Measured against the best fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from nrsfm.errors import SolverError
+from nrsfm.reconstruction import Reconstruction
+from nrsfm.sequence import Sequence
+
+#: The largest K the agreement rule tries (and the rank rules' cap).
+K_MAX = 12
+
+
+def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
+    """The Ks the rule tries on an `(F, P)` sequence: 1 to ``k_max`` with 3K < min(2F, P) (at least 1)."""
+    return range(1, max(1, min(k_max, (min(2 * n_frames, n_points) - 1) // 3)) + 1)
+
+
+def reference_shapes(seq: Sequence) -> np.ndarray:
+    """`(F, P, 3)` camera-frame shapes of EM-PND at its defaults: the reference of the agreement rule."""
+    from nrsfm.solvers.registry import get_solver
+
+    spec = get_solver("empnd")
+    return spec.solve.__wrapped__(seq, spec.params()).points_3d
+
+
+def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
+                reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
+    """The reconstruction, among ``solve_k(k)`` for ``k`` in ``ks``, nearest ``reference`` `(F, P, 3)` in e3D.
+
+    A K whose solve raises :class:`~nrsfm.errors.SolverError` is skipped (recorded as NaN).
+
+    Returns:
+        The kept reconstruction and every K's distance to the reference.
+    """
+    from nrsfm.metrics import e3d
+
+    best, dist = None, {}
+    for k in ks:
+        try:
+            rec = solve_k(k)
+        except SolverError:
+            dist[k] = float("nan")
+            continue
+        dist[k] = e3d(rec.points_3d, reference)
+        if best is None or dist[k] < dist[best[0]]:
+            best = (k, rec)
+    if best is None:
+        raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
+    return best[1], dist

@@ -1,0 +1,51 @@
+"""K chosen by agreement with a reconstruction that needs no K (CSF2's default rule)."""
+
+import numpy as np
+import pytest
+
+from nrsfm import Reconstruction, solve
+from nrsfm.datasets.synthetic import lowrank_sequence
+from nrsfm.errors import SolverError, ValidationError
+from nrsfm.metrics import e3d
+from nrsfm.solvers.kselect import agreement_k, k_candidates
+
+
+def test_agreement_keeps_the_k_nearest_the_reference_and_skips_a_failed_k():
+    rng = np.random.default_rng(0)
+    reference = rng.standard_normal((20, 10, 3))
+    noise = rng.standard_normal(reference.shape)
+
+    def solve_k(k):
+        if k == 4:
+            raise SolverError("K = 4 does not fit")
+        return Reconstruction(points_3d=reference + 0.1 * abs(k - 3) * noise, rotations=None, method="fake")
+
+    rec, dist = agreement_k(solve_k, range(1, 6), reference)
+    assert np.allclose(rec.points_3d, reference) and dist[3] < 1e-12
+    assert np.isnan(dist[4]) and dist[1] > dist[2] > dist[3] and dist[5] > dist[3]
+    # a reflection in depth is the same reconstruction (orthographic depth has no sign)
+    rec, dist = agreement_k(solve_k, [3], reference * np.array([1.0, 1.0, -1.0]))
+    assert dist[3] < 1e-12
+    with pytest.raises(SolverError, match="no K"):
+        agreement_k(lambda k: solve_k(4), [4], reference)
+
+
+def test_k_candidates_keep_3k_below_the_frames_and_points():
+    assert list(k_candidates(300, 17)) == [1, 2, 3, 4, 5]
+    assert list(k_candidates(300, 41)) == list(range(1, 13))  # capped at 12
+    assert list(k_candidates(300, 68)) == list(range(1, 13))
+    assert list(k_candidates(2, 41)) == [1]  # 3K < 2F
+    assert list(k_candidates(40, 4)) == [1]
+
+
+def test_csf2_default_k_is_the_agreement_rule_and_finds_the_k_of_low_rank_tracks():
+    seq = lowrank_sequence(60, 12, 2, seed=1, cameras="random", noise=0.005)
+    rec = solve(seq, "csf2")
+    dist = rec.info["agreement"]
+    assert rec.info["k_rule"] == "agreement" and sorted(dist) == [1, 2, 3]
+    assert rec.info["K"] == min(dist, key=dist.get)
+    assert e3d(rec.points_3d, seq.points_3d) <= 1.1 * min(e3d(solve(seq, "csf2", K=k).points_3d, seq.points_3d)
+                                                          for k in (1, 2, 3))
+    assert "agreement" not in solve(seq, "csf2", k_rule="rank").info
+    with pytest.raises(ValidationError, match="k_rule"):
+        solve(seq, "csf2", k_rule="best")
