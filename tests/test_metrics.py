@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from nrsfm import ValidationError
 from nrsfm.metrics import (camera_moves, classic_metrics, e3d, e3d_per_frame, mpjpe_best_flip, mpjpe_prn,
-                           normalized_error, pa_mpjpe, rotation_error, rotation_error_per_frame, stress)
+                           mpjpe_prn_per_joint, normalized_error, pa_mpjpe, rotation_error, rotation_error_per_frame,
+                           stress)
 
 MIRROR = np.array([1.0, 1.0, -1.0])
 
@@ -46,6 +47,8 @@ def test_mpjpe_known_values_and_z_sign():
     assert mpjpe_prn(gt * MIRROR, gt, z_sign="none") == pytest.approx(2.0)
     pred = gt + np.array([[[0, 3, 0], [0, -3, 0]]])
     assert mpjpe_prn(pred, gt) == pytest.approx(3.0)
+    per_joint = mpjpe_prn_per_joint(pred, gt)
+    assert per_joint.shape == gt.shape[:2] and per_joint.mean() == pytest.approx(3.0)
 
 
 def test_pa_mpjpe_and_reflection(rng):

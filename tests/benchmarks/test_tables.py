@@ -23,6 +23,13 @@ def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, cap
     data = json.loads((out / "table_s1.json").read_text())
     avg = {r["missing_ratio"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"]}
     assert set(avg) == {0.0, 0.2} and all(np.isfinite(v) for v in avg.values())
+    parts = {r["missing_ratio"]: r["mpjpe_by_visibility_mm"] for r in data["results"]}
+    assert parts[0.0]["missing"] is None and parts[0.0]["visible"] == pytest.approx(avg[0.0])
+    # about a fifth of the joints are missing: the average lies between the two parts, near 4:1
+    lo, hi = sorted((parts[0.2]["visible"], parts[0.2]["missing"]))
+    assert lo < avg[0.2] < hi and avg[0.2] == pytest.approx(0.8 * parts[0.2]["visible"] + 0.2 * parts[0.2]["missing"],
+                                                             rel=0.05)
+    assert "| PRN-FCN, missing joints | – |" in text
     caches = [t["cache"] for per in data["meta"]["timings"].values() for t in per.values()]
     assert len(set(caches)) == 2  # a model per ratio
     assert (out / "table_s1.png").exists() and (out / "table_s1.csv").exists()
