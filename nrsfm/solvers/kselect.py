@@ -1,6 +1,6 @@
 """Choosing a solver's number of basis shapes K by agreement with a reconstruction that needs no K.
 
-The rule (``k_rule="agreement"`` of CSF2 and SPM, their default with ``K = 0``):
+The rule (CSF2's ``k_rule="agreement"``, its default with ``K = 0``):
 
 1. reconstruct the sequence once with EM-PND at its defaults (:mod:`nrsfm.solvers.empnd`: a Procrustean normal
    distribution, no K), the *reference*;
@@ -10,9 +10,10 @@ The rule (``k_rule="agreement"`` of CSF2 and SPM, their default with ``K = 0``):
 
 No ground truth enters and nothing depends on a name. A K whose solution fell into a poor minimum disagrees with
 the reference and is passed over; so is a K too small to hold the motion. Cost: one EM-PND solve plus one solve
-per K (five on 17 joints, twelve on 37 or more points). The rank rules (``k_rule="rank"`` for CSF2,
-``"energy"`` for SPM) cost one solve; the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use CSF2's rank
-rule. Measured against the best fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
+per K (five on 17 joints, twelve on 37 or more points). CSF2's rank rule (``k_rule="rank"``) costs one solve;
+the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use it. SPM keeps its energy rule: with this one it failed
+badly where EM-PND is far worse than SPM. Measured against the best fixed K in ``benchmarks/RESULTS.md``
+(``benchmarks.defaults``).
 """
 
 from __future__ import annotations
