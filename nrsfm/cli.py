@@ -273,6 +273,9 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     else:
         print(f"{seq.name}: {spec.name} on {seq.n_frames} frames x {seq.n_points} points in {rec.runtime_s:.3f} s "
               f"({rec.iterations} iterations, {'converged' if rec.converged else 'NOT converged'})")
+        if rec.params.get("K") == 0 and "K" in rec.info:
+            rule = rec.info.get("k_rule")
+            print(f"  K (automatic):        {rec.info['K']}" + (f" ({rule} rule)" if rule else ""))
         if metrics:
             print(f"  e3D (camera frame):   {metrics['e3d']:.6g}")
             if "e3d_object" in metrics:

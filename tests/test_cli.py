@@ -162,6 +162,17 @@ def test_info_json_and_synth(tmp_path, capsys):
         assert info["frames"] == 12 and info["ground_truth"] is True and info["valid"] is True
 
 
+def test_solve_states_the_automatic_k_and_its_rule(tmp_path, capsys):
+    path = lowrank_sequence(40, 12, 2, seed=3, noise=0.01).save(tmp_path / "seq.npz")
+    code, out, err = _run(capsys, "solve", str(path), "-m", "csf2")
+    assert code == 0, err
+    assert "K (automatic):        2 (agreement rule)" in out
+    code, out, _ = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "k_rule=rank")
+    assert "(rank rule)" in out
+    code, out, _ = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "K=3")
+    assert code == 0 and "K (automatic)" not in out
+
+
 def test_methods_and_demo(tmp_path, capsys):
     code, out, _ = _run(capsys, "methods")
     assert code == 0 and "rank3" in out

@@ -266,7 +266,7 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     return Reconstruction(points_3d=points * unit, rotations=rot, method="csf2", iterations=it, converged=converged,
                           info={"K": k, "d": d, "rmse": float(rmse) * unit, "camera_residual": cam_residual,
                                 "camera_columns": cam_cols, "shape_start": shape_start, "completion": completion,
-                                "rounds": rounds_run})
+                                "rounds": rounds_run, "k_rule": params.k_rule if params.K == 0 else None})
 
 
 def _agreement(seq: Sequence, params: CSF2Params) -> Reconstruction:
