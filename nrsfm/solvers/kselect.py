@@ -1,19 +1,20 @@
 """Choosing a solver's number of basis shapes K by agreement with a reconstruction that needs no K.
 
-The rule (CSF2's ``k_rule="agreement"``, its default with ``K = 0``):
+The rule (``k_rule="agreement"``, the default of CSF2 and SPM with ``K = 0``):
 
 1. reconstruct the sequence once with EM-PND at its defaults (:mod:`nrsfm.solvers.empnd`: a Procrustean normal
    distribution, no K), the *reference*;
-2. solve with every K from 1 to 12 with 3K < min(2F, P) (the fixed Ks that ``benchmarks.defaults`` sweeps);
+2. solve with every K from 1 (SPM: from 2, its energy rule's floor) to 12 with 3K < min(2F, P) (the fixed Ks
+   that ``benchmarks.defaults`` sweeps);
 3. keep the K whose camera-frame shapes are nearest the reference's: the e3D between the two
    (:func:`nrsfm.metrics.e3d`, one global rotation or reflection, divided by the reference's scale).
 
 No ground truth enters and nothing depends on a name. A K whose solution fell into a poor minimum disagrees with
 the reference and is passed over; so is a K too small to hold the motion. Cost: one EM-PND solve plus one solve
-per K (five on 17 joints, twelve on 37 or more points). CSF2's rank rule (``k_rule="rank"``) costs one solve;
-the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use it. SPM keeps its energy rule: with this one it failed
-badly where EM-PND is far worse than SPM. Measured against the best fixed K in ``benchmarks/RESULTS.md``
-(``benchmarks.defaults``).
+per K (five on 17 joints, twelve on 37 or more points). CSF2's rank rule (``k_rule="rank"``) and SPM's energy
+rule (``k_rule="energy"``) cost one solve; the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use the rank
+rule. SPM starts from K = 2 because its K = 1 resembled a poor EM-PND reconstruction where SPM's own K = 5 was
+three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
 """
 
 from __future__ import annotations

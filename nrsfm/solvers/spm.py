@@ -28,19 +28,22 @@ Options that are not the authors' method, off by default:
   the basis shapes, so its minimum is not the shape when the camera turns through a short arc. Not convex.
 * ``refine_cameras=true``: the cameras refined by the shape step's nuclear norm (:func:`refine_cameras_nuclear`).
 
-K (``K = 0``): :func:`auto_rank`, ``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r``, else the
-smallest K whose 3K singular values hold 99.5% of the energy. The authors' K per CMU file is a settings table of
-``benchmarks/classic.py``.
+K (``K = 0``), by ``k_rule``: ``"agreement"`` (the default) solves every K from 2 (the energy rule's floor) to
+12 with 3K < min(2F, P) and keeps the one nearest EM-PND's reconstruction (:mod:`nrsfm.solvers.kselect`);
+``"energy"`` is :func:`auto_rank`, one solve: ``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r``,
+else the smallest K whose 3K singular values hold 99.5% of the energy. The authors' K per CMU file is a settings
+table of ``benchmarks/classic.py``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from nrsfm.errors import SolverError, ValidationError
+from nrsfm.errors import NRSfMError, SolverError, ValidationError
 from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
@@ -56,6 +59,7 @@ class SPMParams:
     """Parameters of :func:`solve_spm` (``K = 0``: automatic).
 
     Attributes:
+        K: number of basis shapes (0: automatic, by ``k_rule``: ``"agreement"`` or ``"energy"``; module docstring).
         shape_solver: ``"cvxpy"``, ``"admm"``, ``"fpc"`` or ``"auto"`` (cvxpy when F + 3P <= cvxpy_limit, else ADMM).
         trace_weight: weight of trace(Q) in the rotation program (relative).
         shape_objective: ``"nuclear"`` (the authors': the nuclear norm of ``S#``) or ``"partial"`` (the sum of its
@@ -70,6 +74,7 @@ class SPMParams:
     """
 
     K: int = 0
+    k_rule: str = "agreement"
     shape_solver: str = "auto"
     shape_objective: str = "nuclear"
     trace_weight: float = 1e-4
@@ -86,6 +91,8 @@ class SPMParams:
     refine_iter: int = 300
 
     def __post_init__(self) -> None:
+        if self.k_rule not in ("agreement", "energy"):
+            raise ValidationError(f"k_rule: expected 'agreement' or 'energy', got {self.k_rule!r}")
         if self.shape_solver not in ("auto", "cvxpy", "admm", "fpc"):
             raise ValidationError(f"shape_solver: expected 'auto', 'cvxpy', 'admm' or 'fpc', got {self.shape_solver!r}")
         if self.shape_objective not in ("nuclear", "partial"):
@@ -461,6 +468,8 @@ def shape_partial(w: np.ndarray, rot: np.ndarray, keep: int, depth: np.ndarray, 
 @register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)")
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on a complete orthographic sequence. See the module docstring."""
+    if params.K == 0 and params.k_rule == "agreement":
+        return _agreement(seq, params)
     n_frames, n_points = seq.n_frames, seq.n_points
     w = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)
     wm = w.transpose(0, 2, 1).reshape(2 * n_frames, n_points)  # (2F, P)
@@ -504,4 +513,23 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
                           converged=converged,
                           info={"K": k, "shape_solver": solver, "shape_iterations": shape_iterations,
                                 "shape_objective": params.shape_objective, "camera_residual": cam_residual,
-                                "refined_cameras": params.refine_cameras})
+                                "refined_cameras": params.refine_cameras,
+                                "k_rule": params.k_rule if params.K == 0 else None})
+
+
+def _agreement(seq: Sequence, params: SPMParams) -> Reconstruction:
+    """SPM with the K (from 2) nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
+    from nrsfm.solvers.kselect import agreement_k, k_candidates, reference_shapes
+
+    ks = [k for k in k_candidates(seq.n_frames, seq.n_points) if k >= 2]
+    try:
+        reference = reference_shapes(seq) if len(ks) > 1 else None
+    except NRSfMError as exc:  # degenerate tracks EM-PND refuses: the energy rule, saying why
+        rec = solve_spm.__wrapped__(seq, dataclasses.replace(params, k_rule="energy"))
+        rec.info.update(k_rule=f"energy (the agreement rule's reference failed: {exc})")
+        return rec
+    if reference is None:
+        return solve_spm.__wrapped__(seq, dataclasses.replace(params, k_rule="energy"))
+    rec, dist = agreement_k(lambda k: solve_spm.__wrapped__(seq, dataclasses.replace(params, K=k)), ks, reference)
+    rec.info.update(k_rule="agreement", agreement=dist)
+    return rec

@@ -50,7 +50,7 @@ def test_spm_automatic_k_takes_the_rank_of_noise_free_tracks():
     assert auto_rank(w_of(seq), rel_tol=0) == 2  # every singular value counts: the energy rule
     noisy = lowrank_sequence(300, 17, 3, cameras="smooth", seed=0, noise=0.01)
     assert auto_rank(w_of(noisy)) == auto_rank(w_of(noisy), rel_tol=0)
-    rec = solve(seq, "spm")
+    rec = solve(seq, "spm", k_rule="energy")
     assert rec.info["K"] == 3 and rotation_error(rec.rotations, seq.camera_rotations) < 1e-6
 
 
@@ -59,8 +59,8 @@ def test_spm_partial_sum_recovers_a_short_arc_of_smooth_cameras():
     another shape (e3D .33, its nuclear norm 3% below the truth's); the partial sum beyond K is zero at the
     truth and the shape step finds it."""
     seq = lowrank_sequence(300, 17, 3, cameras="smooth", seed=0)
-    nuclear = solve(seq, "spm")
-    partial = solve(seq, "spm", shape_objective="partial")
+    nuclear = solve(seq, "spm", k_rule="energy")
+    partial = solve(seq, "spm", shape_objective="partial", k_rule="energy")
     assert e3d(nuclear.points_3d, seq.points_3d) > 0.1
     assert e3d(partial.points_3d, seq.points_3d) < 1e-3 and partial.converged
     assert partial.info["shape_objective"] == "partial" and partial.iterations > nuclear.iterations
@@ -92,8 +92,8 @@ def test_spm_admm_reaches_a_lower_nuclear_norm_than_the_truth():
 def test_spm_chooses_cvxpy_by_the_side_of_its_semidefinite_block():
     """cvxpy's nuclear norm is a semidefinite block of side F + 3P: 5 x 60 (900 entries of S#, side 185) took
     279 s under the old limit on the entries (1000); ADMM takes milliseconds."""
-    assert solve(lowrank_sequence(10, 10, 2, seed=0), "spm").info["shape_solver"] == "cvxpy"  # side 40
-    rec = solve(lowrank_sequence(5, 60, 1, seed=0), "spm")
+    assert solve(lowrank_sequence(10, 10, 2, seed=0), "spm", K=2).info["shape_solver"] == "cvxpy"  # side 40
+    rec = solve(lowrank_sequence(5, 60, 1, seed=0), "spm", k_rule="energy")
     assert rec.info["shape_solver"] == "admm" and rec.runtime_s < 10
 
 
@@ -108,7 +108,7 @@ def test_spm_camera_refinement_lowers_the_nuclear_norm_and_keeps_exact_cameras()
     from nrsfm.solvers.spm import camera_step, refine_cameras_nuclear, shape_admm
 
     exact = lowrank_sequence(60, 20, 2, seed=0)
-    rec = solve(exact, "spm", refine_cameras=True)
+    rec = solve(exact, "spm", refine_cameras=True, k_rule="energy")
     assert rec.info["refined_cameras"] and e3d(rec.points_3d, exact.points_3d) < 1e-3
     seq = lowrank_sequence(40, 15, 2, seed=1, noise=0.01)
     wf = (seq.points_2d - seq.points_2d.mean(1, keepdims=True)).transpose(0, 2, 1)  # (F, 2, P)
@@ -145,3 +145,14 @@ def test_spm_sign_resolution_does_not_use_temporal_order():
     reference = np.einsum("fij,jk->fik", truth, h)
     fixed = resolve_signs(flipped, reference)
     np.testing.assert_allclose(fixed, truth, atol=1e-9)
+
+
+def test_spm_default_k_is_the_agreement_rule_from_k_2():
+    seq = lowrank_sequence(60, 15, 2, seed=1, noise=0.01)
+    rec = solve(seq, "spm")
+    dist = rec.info["agreement"]
+    assert rec.info["k_rule"] == "agreement" and sorted(dist) == [2, 3, 4]  # from the energy rule's floor, 3K < P
+    assert rec.info["K"] == min(dist, key=dist.get) == 2
+    assert solve(seq, "spm", k_rule="energy").info["k_rule"] == "energy"
+    with pytest.raises(ValidationError, match="k_rule"):
+        solve(seq, "spm", k_rule="rank")
