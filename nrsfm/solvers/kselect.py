@@ -19,6 +19,8 @@ three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 
 import numpy as np
@@ -36,12 +38,28 @@ def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
     return range(1, max(1, min(k_max, (min(2 * n_frames, n_points) - 1) // 3)) + 1)
 
 
+#: The last references computed in this process, by input (:func:`reference_shapes`).
+_REFERENCES: OrderedDict[str, np.ndarray] = OrderedDict()
+_REFERENCES_KEPT = 4
+
+
 def reference_shapes(seq: Sequence) -> np.ndarray:
-    """`(F, P, 3)` camera-frame shapes of EM-PND at its defaults: the reference of the agreement rule."""
+    """`(F, P, 3)` camera-frame shapes of EM-PND at its defaults: the reference of the agreement rule.
+
+    The last few are kept by a digest of the tracks, so CSF2 and SPM on the same input compute it once."""
     from nrsfm.solvers.registry import get_solver
 
-    spec = get_solver("empnd")
-    return spec.solve.__wrapped__(seq, spec.params()).points_3d
+    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
+    digest.update(f"{seq.points_2d.shape}{seq.projection}".encode())
+    key = digest.hexdigest()
+    if key not in _REFERENCES:
+        spec = get_solver("empnd")
+        _REFERENCES[key] = spec.solve.__wrapped__(seq, spec.params()).points_3d
+        while len(_REFERENCES) > _REFERENCES_KEPT:
+            _REFERENCES.popitem(last=False)
+    _REFERENCES.move_to_end(key)
+    return _REFERENCES[key].copy()
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],

@@ -49,3 +49,24 @@ def test_csf2_default_k_is_the_agreement_rule_and_finds_the_k_of_low_rank_tracks
     assert "agreement" not in solve(seq, "csf2", k_rule="rank").info
     with pytest.raises(ValidationError, match="k_rule"):
         solve(seq, "csf2", k_rule="best")
+
+
+def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch):
+    from nrsfm.solvers import kselect
+    from nrsfm.solvers.registry import get_solver
+
+    spec = get_solver("empnd")
+    calls = []
+    real = spec.solve.__wrapped__
+
+    def counted(seq, params):
+        calls.append(seq.name)
+        return real(seq, params)
+
+    monkeypatch.setattr(spec.solve, "__wrapped__", counted)
+    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
+    seq = lowrank_sequence(40, 12, 2, seed=4, noise=0.01)
+    solve(seq, "csf2"), solve(seq, "spm"), solve(seq.replace(name="renamed"), "csf2")
+    assert len(calls) == 1  # the same tracks under another name are the same input
+    solve(lowrank_sequence(40, 12, 2, seed=5, noise=0.01), "csf2")
+    assert len(calls) == 2
