@@ -240,7 +240,7 @@ def solve_cell(job: str, method: str, missing: float, settings: str = "auto", ex
            "missing": missing}
     overrides = {}
     if settings == "reference":
-        # EM-PND needs none: with missing points it starts from CSF2 with the automatic K (the e3D after EM is
+        # EM-PND needs none: with missing points it starts from CSF2 with its rank-rule K (the e3D after EM is
         # the same as from CSF2's reference K; benchmarks/RESULTS.md), with complete tracks from its own start
         overrides = dict(REFERENCE_SETTINGS.get(method, {}).get(seq.name, {}))
     overrides.update(extra or {})

@@ -174,7 +174,7 @@ def _start(seq: Sequence, fp2: np.ndarray, k: int, params: EMPPCAParams):
     if init == "csf2" and min(2 * n_frames, n_points) < 6:
         init = "rigid"  # CSF2 needs 3K <= min(2F, P) with K >= 2; tiny sequences start rigid (documented fallback)
     if init == "csf2":  # cameras, mean and modes from CSF2's reconstruction (PCA of its object-frame shapes)
-        k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's automatic K
+        k_init = min(params.init_K, min(2 * n_frames, n_points) // 3)  # 0: CSF2's rank rule
         start = csf2_reconstruction(seq, k_init)
         r2 = start.rotations[:, :2].copy()
         obj = start.shapes_object.transpose(0, 2, 1)  # (F, 3, P)

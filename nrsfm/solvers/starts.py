@@ -1,4 +1,4 @@
-"""The starts that several solvers share: CSF2's reconstruction and its automatic K.
+"""The starts that several solvers share: CSF2's reconstruction and its rank rule for K.
 
 PR, EM-PND, EM-PPCA and the consensus start from CSF2's reconstruction (:func:`csf2_start`,
 :func:`csf2_reconstruction`), and CSF2 and PR choose K by one rule (:func:`auto_k`): ``ceil(r / 3)``, plus one
@@ -34,8 +34,8 @@ from nrsfm.solvers.registry import get_solver
 
 def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6,
            max_frames: int = 300, max_points: int = 60, fit: tuple[int, np.ndarray | None] | None = None) -> int:
-    """CSF2's automatic K for a `(2F, P)` W: ``ceil(r / 3)``, plus one when 3 does not divide ``r``, for a rank
-    ``r`` of the centred W, at most ``k_max`` and with 3K < min(2F, P) (module docstring).
+    """CSF2's rank rule for K (``k_rule="rank"``) on a `(2F, P)` W: ``ceil(r / 3)``, plus one when 3 does not
+    divide ``r``, for a rank ``r`` of the centred W, at most ``k_max`` and with 3K < min(2F, P) (module docstring).
 
     ``r`` is the numerical rank (singular values above ``rel_tol`` times the largest) when W is rank deficient; when
     it is not, the rank of noisy low-rank tracks (:func:`~nrsfm.lowrank.noise_rank`), and the cap where W does not look
@@ -121,7 +121,7 @@ def shared(name: str, key: tuple, compute: Callable[[], Any]) -> Any:
 
 def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
     """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
-    3K <= min(2F, P) (0: the automatic rule); ``overrides``: other :class:`CSF2Params` fields. Check
+    3K <= min(2F, P) (0: CSF2's rank rule); ``overrides``: other :class:`CSF2Params` fields. Check
     :func:`fits_csf2` first. Inside :func:`shared_starts`, computed once per input."""
     k = min(K, min(2 * seq.n_frames, seq.n_points) // 3)
     cache = _SHARED_STARTS.get()
