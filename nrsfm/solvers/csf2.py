@@ -59,7 +59,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from nrsfm import progress
-from nrsfm.errors import NRSfMError, SolverError, ValidationError
+from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
 from nrsfm.lowrank import complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank
 from nrsfm.reconstruction import Reconstruction
@@ -271,22 +271,14 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
 
 def _agreement(seq: Sequence, params: CSF2Params) -> Reconstruction:
     """CSF2 with the K nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
-    from nrsfm.solvers.kselect import agreement_k, k_candidates, reference_shapes
+    from nrsfm.solvers.kselect import k_candidates, solve_by_agreement
 
     ks = k_candidates(seq.n_frames, seq.n_points)
-    try:
-        reference = reference_shapes(seq) if len(ks) > 1 else None
-    except NRSfMError as exc:  # degenerate tracks EM-PND refuses: the rank rule, saying why
-        rec = solve_csf2.__wrapped__(seq, dataclasses.replace(params, k_rule="rank"))
-        rec.info.update(k_rule=f"rank (the agreement rule's reference failed: {exc})")
-        return rec
-    if reference is None:
+    if len(ks) == 1:
         rec = solve_csf2.__wrapped__(seq, dataclasses.replace(params, K=1))
         rec.info.update(k_rule="agreement")
         return rec
-    rec, dist = agreement_k(lambda k: solve_csf2.__wrapped__(seq, dataclasses.replace(params, K=k)), ks, reference)
-    rec.info.update(k_rule="agreement", agreement=dist)
-    return rec
+    return solve_by_agreement(seq, params, solve_csf2.__wrapped__, list(ks), "rank")
 
 
 def _basis_sizes(w: np.ndarray, mask: np.ndarray, fit: tuple[int, np.ndarray | None] | None,

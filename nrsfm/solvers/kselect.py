@@ -19,17 +19,18 @@ three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md
 
 from __future__ import annotations
 
-import hashlib
+import dataclasses
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
 
-from nrsfm.errors import SolverError
+from nrsfm.errors import NRSfMError, SolverError
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
 
-#: The largest K the agreement rule tries (and the rank rules' cap).
+#: The largest K the agreement rule tries.
 K_MAX = 12
 
 
@@ -48,11 +49,9 @@ def reference_shapes(seq: Sequence) -> np.ndarray:
 
     The last few are kept by a digest of the tracks, so CSF2 and SPM on the same input compute it once."""
     from nrsfm.solvers.registry import get_solver
+    from nrsfm.solvers.starts import tracks_digest
 
-    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
-    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
-    digest.update(f"{seq.points_2d.shape}{seq.projection}".encode())
-    key = digest.hexdigest()
+    key = tracks_digest(seq)
     if key not in _REFERENCES:
         spec = get_solver("empnd")
         _REFERENCES[key] = spec.solve.__wrapped__(seq, spec.params()).points_3d
@@ -86,3 +85,19 @@ def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
     if best is None:
         raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
     return best[1], dist
+
+
+def solve_by_agreement(seq: Sequence, params: Any, solve: Callable[[Sequence, Any], Reconstruction], ks: list[int],
+                       fallback_rule: str) -> Reconstruction:
+    """``solve(seq, params)`` with the K among ``ks`` nearest EM-PND's reconstruction (:func:`agreement_k`), the
+    distances in ``info["agreement"]``. Where EM-PND refuses the tracks (degenerate input), ``params`` with
+    ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
+    try:
+        reference = reference_shapes(seq)
+    except NRSfMError as exc:
+        rec = solve(seq, dataclasses.replace(params, k_rule=fallback_rule))
+        rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {exc})")
+        return rec
+    rec, dist = agreement_k(lambda k: solve(seq, dataclasses.replace(params, K=k)), ks, reference)
+    rec.info.update(k_rule="agreement", agreement=dist)
+    return rec

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nrsfm.errors import NRSfMError, SolverError, ValidationError
+from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
@@ -519,17 +519,9 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
 
 def _agreement(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM with the K (from 2) nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
-    from nrsfm.solvers.kselect import agreement_k, k_candidates, reference_shapes
+    from nrsfm.solvers.kselect import k_candidates, solve_by_agreement
 
     ks = [k for k in k_candidates(seq.n_frames, seq.n_points) if k >= 2]
-    try:
-        reference = reference_shapes(seq) if len(ks) > 1 else None
-    except NRSfMError as exc:  # degenerate tracks EM-PND refuses: the energy rule, saying why
-        rec = solve_spm.__wrapped__(seq, dataclasses.replace(params, k_rule="energy"))
-        rec.info.update(k_rule=f"energy (the agreement rule's reference failed: {exc})")
-        return rec
-    if reference is None:
+    if len(ks) <= 1:
         return solve_spm.__wrapped__(seq, dataclasses.replace(params, k_rule="energy"))
-    rec, dist = agreement_k(lambda k: solve_spm.__wrapped__(seq, dataclasses.replace(params, K=k)), ks, reference)
-    rec.info.update(k_rule="agreement", agreement=dist)
-    return rec
+    return solve_by_agreement(seq, params, solve_spm.__wrapped__, ks, "energy")

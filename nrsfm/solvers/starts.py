@@ -119,6 +119,14 @@ def shared(name: str, key: tuple, compute: Callable[[], Any]) -> Any:
     return cache[digest.hexdigest()]
 
 
+def tracks_digest(seq: Sequence) -> str:
+    """A digest of what a solver sees of ``seq``: its 2D tracks, visibility, shape and projection (not its name)."""
+    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
+    digest.update(f"{seq.points_2d.shape} {seq.projection}".encode())
+    return digest.hexdigest()
+
+
 def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
     """`(F, P, 3)` CSF2 reconstruction used as another solver's start (EM-PND, PR), ``K`` capped by
     3K <= min(2F, P) (0: CSF2's rank rule); ``overrides``: other :class:`CSF2Params` fields. Check
@@ -127,9 +135,7 @@ def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
     cache = _SHARED_STARTS.get()
     if cache is None:
         return csf2_reconstruction(seq, k, **overrides).points_3d
-    digest = hashlib.sha256(np.ascontiguousarray(seq.points_2d, dtype=np.float64).tobytes())
-    digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
-    data = (digest.hexdigest(), seq.points_2d.shape, seq.projection, tuple(sorted(overrides.items())))
+    data = (tracks_digest(seq), tuple(sorted(overrides.items())))
     if (data, k) not in cache:
         rec = csf2_reconstruction(seq, k, **overrides)
         cache[data, k] = rec.points_3d
