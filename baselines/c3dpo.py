@@ -37,6 +37,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,8 +67,10 @@ class C3DPOConfig:
         keypoint_rescale: the centred keypoints are multiplied by it before the networks and the shapes divided
             by it after (the authors' ``keypoint_rescale``); with a fixed ``huber`` it sets the scale at which
             the reprojection loss turns from quadratic to linear.
-        iterations, batch, lr, momentum, weight_decay: SGD; the lr is divided by 10 at 2/3 and 8/9 of
-            ``iterations`` (epochs 60 and 80 of 90).
+        iterations, batch, lr, momentum, weight_decay: the optimiser's settings; the lr is divided by 10 at 2/3
+            and 8/9 of ``iterations`` (epochs 60 and 80 of 90).
+        optimizer: ``"sgd"`` (the authors' Human3.6M choice, with ``momentum``) or ``"adam"`` (their code's
+            other breed: betas 0.9 and 0.999, the same lr and weight decay).
         seed, device, checkpoint_every: as :class:`prn.train.TrainConfig`.
     """
 
@@ -83,6 +86,7 @@ class C3DPOConfig:
     lr: float = 1e-3
     momentum: float = 0.9
     weight_decay: float = 5e-4
+    optimizer: str = "sgd"
     seed: int = 0
     device: str = "auto"
     checkpoint_every: int = 2000
@@ -94,6 +98,8 @@ class C3DPOConfig:
                                   f"{self.batch}")
         if not self.keypoint_rescale > 0:
             raise ValidationError(f"C3DPOConfig: expected keypoint_rescale > 0, got {self.keypoint_rescale}")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ValidationError(f"C3DPOConfig: expected optimizer 'sgd' or 'adam', got {self.optimizer!r}")
 
     def lr_at(self, iteration: int) -> float:
         drops = sum(iteration >= round(self.iterations * f) for f in (60 / 90, 80 / 90))
@@ -216,21 +222,28 @@ def _centre(w: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
-                *, resume: bool = True, progress: bool = True) -> tuple[C3DPO, dict]:
+                *, resume: bool = True, progress: bool = True,
+                monitor: Callable[[C3DPO], dict] | None = None) -> tuple[C3DPO, dict]:
     """Train C3DPO on `(N, P, 2)` normalised keypoints and `(N, P)` visibilities; checkpoints every
     ``checkpoint_every`` iterations to ``out_dir/checkpoint.pt`` (resumed when ``resume``), the final model to
-    ``out_dir/model.pt``. Returns the model (eval mode) and a record of the run."""
+    ``out_dir/model.pt``. Returns the model (eval mode) and a record of the run.
+
+    ``monitor``, when given, is called with the model (in eval mode) at every checkpoint; its dict goes into the
+    record's ``monitor`` list with the iteration (for example a held-out error along training)."""
     from tqdm.auto import tqdm
 
     device = pick_device(config.device)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     model = C3DPO(inputs.shape[1], config).to(device)
-    opt = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum,
-                          weight_decay=config.weight_decay)
+    if config.optimizer == "adam":
+        opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
+    else:
+        opt = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum,
+                              weight_decay=config.weight_decay)
     out = Path(out_dir) if out_dir is not None else None
     ckpt = out / "checkpoint.pt" if out is not None else None
-    start, history = 0, []
+    start, history, monitored = 0, [], []
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     if ckpt is not None and resume and ckpt.exists():
@@ -239,7 +252,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
             raise ValidationError(f"{ckpt}: the checkpoint was made with another configuration")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
-        start, history = state["iteration"], state["history"]
+        start, history, monitored = state["iteration"], state["history"], state.get("monitor", [])
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"].cpu())
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
@@ -266,13 +279,17 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
                             "lr": config.lr_at(it)})
             bar.set_postfix(rep=f"{loss_rep.item():.3g}", can=f"{loss_can.item():.3g}")
         bar.update(1)
-        if ckpt is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations):
+        at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations
+        if monitor is not None and at_checkpoint:
+            monitored.append({"iteration": it + 1, **monitor(model.eval())})
+            model.train()
+        if ckpt is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
-                   "history": history, "config": dataclasses.asdict(config), "numpy_rng": rng.bit_generator.state,
-                   "torch_rng": torch.get_rng_state()}, ckpt)
+                         "history": history, "monitor": monitored, "config": dataclasses.asdict(config),
+                         "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
-              "history": history}
+              "history": history, "monitor": monitored}
     if out is not None:
         atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
               out / "model.pt")

@@ -189,10 +189,19 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
         return pred if ctx.c3dpo_inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][
             :, None, None]
 
+    def test_error(model):  # a diagnostic along training (--c3dpo-monitor); nothing is chosen with it
+        from nrsfm.metrics import mpjpe_prn
+
+        preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
+        return {"test_mpjpe_mm": mpjpe_prn(np.concatenate([denormalize(p, t.points_3d) for p, t in
+                                                          zip(preds, split.test_truth)]),
+                                           np.concatenate([t.points_3d for t in split.test_truth]))}
+
     inputs, weights = normalised(split.train_inputs)
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
     iterations = ctx.c3dpo_iterations or max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))
     config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, keypoint_rescale=ctx.c3dpo_rescale,
+                         optimizer=ctx.c3dpo_optimizer,
                          seed=ctx.seed, device=ctx.device,
                          checkpoint_every=max(100, iterations // 20))
     cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,
@@ -205,9 +214,12 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
         ctx.timings[key] = {"cached": True, "train_seconds": info["seconds"], "iterations": iterations,
                             "cache": str(cache)}
     else:
-        model, info = train_c3dpo(inputs, weights, config, cache, resume=not ctx.retrain, progress=ctx.progress)
+        model, info = train_c3dpo(inputs, weights, config, cache, resume=not ctx.retrain, progress=ctx.progress,
+                                  monitor=test_error if ctx.c3dpo_monitor else None)
         ctx.timings[key] = {"cached": False, "train_seconds": info["seconds"], "iterations": iterations,
                             "cache": str(cache)}
+    if info.get("monitor"):
+        ctx.timings[key]["monitor"] = info["monitor"]
     preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
     # C3DPO's own protocol beside the table's: root-centred MPJPE, better of raw and depth-flipped, and stress
     pred_mm = np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])

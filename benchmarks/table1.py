@@ -190,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
                                                                    "128 with --quick)")
     p.add_argument("--c3dpo-rescale", type=float, default=1.0,
                    help="C3DPO's keypoint_rescale: the centred keypoints are multiplied by it (default 1)")
+    p.add_argument("--c3dpo-optimizer", choices=["sgd", "adam"], default="sgd",
+                   help="C3DPO's optimiser: the authors' Human3.6M SGD (default) or Adam, their code's other breed")
+    p.add_argument("--c3dpo-monitor", action="store_true",
+                   help="also evaluate C3DPO on the test split at every checkpoint, into its train.json (a "
+                        "diagnostic of the error along training; nothing is chosen with it)")
     p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
                    help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
                         "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
@@ -224,6 +229,7 @@ def _run(args: argparse.Namespace) -> int:
                      progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
                      c3dpo_batch=args.c3dpo_batch, c3dpo_iterations=args.c3dpo_iterations,
                      c3dpo_rescale=args.c3dpo_rescale, c3dpo_inputs=args.c3dpo_inputs,
+                     c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -295,7 +301,8 @@ def _run(args: argparse.Namespace) -> int:
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
                         label_params=ctx.label_params,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
-                               "keypoint_rescale": args.c3dpo_rescale},
+                               "keypoint_rescale": args.c3dpo_rescale,
+                               "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs},
                         timings=ctx.timings, total_seconds=total)
     write_csv(out / "table1.csv", rows_csv)
     write_json(out / "table1.json", {"meta": meta, "results": [

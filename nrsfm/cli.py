@@ -3,7 +3,7 @@
     nrsfm info FILE [--json]
     nrsfm convert IN OUT.npz [--force]
     nrsfm solve FILE --method NAME [--set K=V ...] [--out OUT.npz] [--plot OUT.png] [--json] [--force]
-                [--progress auto|always|never] [--weak-perspective]
+                [--progress auto|always|never] [--jobs N] [--weak-perspective]
     nrsfm methods [NAME]
     nrsfm synth KIND OUT.npz [--frames F] [--points P] [--basis K] [--noise S] [--missing M] [--seed N]
     nrsfm demo [--out DIR]
@@ -69,6 +69,9 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite existing output files")
     s.add_argument("--progress", choices=["auto", "always", "never"], default="auto",
                    help="progress bars of the solver's iterations on stderr (auto: when stderr is a terminal)")
+    s.add_argument("--jobs", type=int, default=1,
+                   help="processes for the automatic K's solves (CSF2 and SPM with K = 0; default 1), each with "
+                        "--threads threads")
     s.add_argument("--weak-perspective", action="store_true",
                    help="perspective tracks: normalise the pixels by the intrinsics and solve them as weak "
                         "perspective (Sequence.to_weak_perspective); metrics against the ground truth divided "
@@ -244,13 +247,20 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     seq = load_sequence(args.file)
     if args.weak_perspective:
         seq = seq.to_weak_perspective()
+    if args.jobs < 1:
+        raise ValueError(f"--jobs: expected a number of processes >= 1, got {args.jobs}")
     show = args.progress == "always" or (args.progress == "auto" and sys.stderr.isatty())
-    if show:
-        from nrsfm.progress import ProgressBars, listen
+    from joblib import parallel_config
 
-        with ProgressBars(sys.stderr) as bars, listen(bars):
-            rec = spec.solve(seq, params)
-    else:
+    with contextlib.ExitStack() as stack:
+        if args.jobs > 1:  # joblib's default for the solver's own Parallel calls (nrsfm.solvers.kselect)
+            stack.enter_context(parallel_config(backend="loky", n_jobs=args.jobs,
+                                                inner_max_num_threads=args.threads or None))
+        if show:
+            from nrsfm.progress import ProgressBars, listen
+
+            bars = stack.enter_context(ProgressBars(sys.stderr))
+            stack.enter_context(listen(bars))
         rec = spec.solve(seq, params)
     metrics: dict[str, float] = {}
     if seq.points_3d is not None:

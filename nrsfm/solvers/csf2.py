@@ -278,7 +278,7 @@ def _agreement(seq: Sequence, params: CSF2Params) -> Reconstruction:
         rec = solve_csf2.__wrapped__(seq, dataclasses.replace(params, K=1))
         rec.info.update(k_rule="agreement")
         return rec
-    return solve_by_agreement(seq, params, solve_csf2.__wrapped__, list(ks), "rank")
+    return solve_by_agreement(seq, params, "csf2", list(ks), "rank")
 
 
 def _basis_sizes(w: np.ndarray, mask: np.ndarray, fit: tuple[int, np.ndarray | None] | None,

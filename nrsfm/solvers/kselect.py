@@ -20,6 +20,7 @@ three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -61,43 +62,59 @@ def reference_shapes(seq: Sequence) -> np.ndarray:
     return _REFERENCES[key].copy()
 
 
+def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction | None:
+    """``solve_k(k)``, None where it raised :class:`~nrsfm.errors.SolverError`."""
+    try:
+        return solve_k(k)
+    except SolverError:
+        return None
+
+
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
                 reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
     """The reconstruction, among ``solve_k(k)`` for ``k`` in ``ks``, nearest ``reference`` `(F, P, 3)` in e3D.
 
-    A K whose solve raises :class:`~nrsfm.errors.SolverError` is skipped (recorded as NaN).
+    A K whose solve raises :class:`~nrsfm.errors.SolverError` is skipped (recorded as NaN). The solves go
+    through :class:`joblib.Parallel` with joblib's default ``n_jobs``: one at a time in this process unless the
+    caller sets more, e.g. ``with joblib.parallel_config(backend="loky", n_jobs=2, inner_max_num_threads=1):``
+    around ``nrsfm.solve(...)`` (``nrsfm solve --jobs 2``); ``solve_k`` must then pickle (a
+    :func:`functools.partial` of a module function).
 
     Returns:
         The kept reconstruction and every K's distance to the reference.
     """
+    from joblib import Parallel, delayed
+
     from nrsfm.metrics import e3d
 
-    best, dist = None, {}
-    for k in ks:
-        try:
-            rec = solve_k(k)
-        except SolverError:
-            dist[k] = float("nan")
-            continue
-        dist[k] = e3d(rec.points_3d, reference)
-        if best is None or dist[k] < dist[best[0]]:
-            best = (k, rec)
-    if best is None:
+    ks = list(ks)
+    recs = Parallel()(delayed(_attempt)(solve_k, k) for k in ks)
+    dist = {k: float("nan") if rec is None else e3d(rec.points_3d, reference) for k, rec in zip(ks, recs)}
+    solved = [k for k, rec in zip(ks, recs) if rec is not None]
+    if not solved:
         raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
-    return best[1], dist
+    best = min(solved, key=lambda k: (not np.isfinite(dist[k]), dist[k]))  # ties: the smallest K
+    return recs[ks.index(best)], dist
 
 
-def solve_by_agreement(seq: Sequence, params: Any, solve: Callable[[Sequence, Any], Reconstruction], ks: list[int],
-                       fallback_rule: str) -> Reconstruction:
-    """``solve(seq, params)`` with the K among ``ks`` nearest EM-PND's reconstruction (:func:`agreement_k`), the
-    distances in ``info["agreement"]``. Where EM-PND refuses the tracks (degenerate input), ``params`` with
-    ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
+def _solve_fixed(solver: str, seq: Sequence, params: Any, k: int | None = None) -> Reconstruction:
+    """The registered ``solver`` without its registry wrapper (which validates and times the whole call), with
+    ``K = k`` when given; a module function, so that a worker process can receive it."""
+    from nrsfm.solvers.registry import get_solver
+
+    return get_solver(solver).solve.__wrapped__(seq, params if k is None else dataclasses.replace(params, K=k))
+
+
+def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
+    """The registered ``solver`` on ``seq`` with the K among ``ks`` nearest EM-PND's reconstruction
+    (:func:`agreement_k`), the distances in ``info["agreement"]``. Where EM-PND refuses the tracks (degenerate
+    input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
     try:
         reference = reference_shapes(seq)
     except NRSfMError as exc:
-        rec = solve(seq, dataclasses.replace(params, k_rule=fallback_rule))
+        rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
         rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {exc})")
         return rec
-    rec, dist = agreement_k(lambda k: solve(seq, dataclasses.replace(params, K=k)), ks, reference)
+    rec, dist = agreement_k(functools.partial(_solve_fixed, solver, seq, params), ks, reference)
     rec.info.update(k_rule="agreement", agreement=dist)
     return rec

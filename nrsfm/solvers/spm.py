@@ -524,4 +524,4 @@ def _agreement(seq: Sequence, params: SPMParams) -> Reconstruction:
     ks = [k for k in k_candidates(seq.n_frames, seq.n_points) if k >= 2]
     if len(ks) <= 1:
         return solve_spm.__wrapped__(seq, dataclasses.replace(params, k_rule="energy"))
-    return solve_by_agreement(seq, params, solve_spm.__wrapped__, ks, "energy")
+    return solve_by_agreement(seq, params, "spm", ks, "energy")

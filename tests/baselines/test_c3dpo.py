@@ -78,3 +78,34 @@ def test_keypoint_rescale_scales_the_networks_inputs_and_divides_their_shapes_ba
     np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
     with pytest.raises(Exception, match="keypoint_rescale"):
         C3DPOConfig(keypoint_rescale=0.0)
+
+
+def test_the_adam_breed_is_adam_and_lowers_the_reprojection_loss(tmp_path):
+    seq = lowrank_sequence(200, 12, 2, seed=0)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    x = x / np.linalg.norm(x.reshape(len(x), -1), axis=1)[:, None, None]
+    config = C3DPOConfig(basis=3, width=64, n_layers=1, iterations=200, batch=32, checkpoint_every=100,
+                         optimizer="adam")
+    _, record = train_c3dpo(x, np.ones(x.shape[:2]), config, tmp_path, progress=False)
+    hist = record["history"]
+    assert hist[-1]["reprojection"] < 0.7 * hist[0]["reprojection"]
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)["optimizer"]["state"]
+    assert all("exp_avg_sq" in s for s in state.values())  # Adam's second moments, which SGD has not
+    with pytest.raises(Exception, match="optimizer"):
+        C3DPOConfig(optimizer="rmsprop")
+
+
+def test_the_monitor_runs_at_every_checkpoint_in_eval_mode(tmp_path):
+    seq = lowrank_sequence(100, 12, 2, seed=0)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    w = np.ones(x.shape[:2])
+    modes = []
+
+    def monitor(model):
+        modes.append(model.training)
+        return {"n_points": model.n_points}
+
+    config = C3DPOConfig(basis=3, width=32, n_layers=1, iterations=20, batch=16, checkpoint_every=10)
+    _, record = train_c3dpo(x, w, config, tmp_path, progress=False, monitor=monitor)
+    assert record["monitor"] == [{"iteration": 10, "n_points": 12}, {"iteration": 20, "n_points": 12}]
+    assert modes == [False, False]

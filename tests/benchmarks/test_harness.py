@@ -379,7 +379,13 @@ def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys,
 
     seqs = human_sequences(["S1"], n_frames=20, takes=1, seed=0, motions=("walking",))
     split = Split(seqs, seqs, seqs[:1], seqs[:1], "gt-ortho", tag="tiny")
-    ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred")
+    ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred",
+                     c3dpo_monitor=True)
     pred = c3dpo(split, ctx)[0]
     np.testing.assert_allclose(pred[..., :2], normalize_2d(seqs[0].points_2d)[0], atol=1e-5)
     assert any("C3DPO" in p.name for p in (tmp_path / "cache").iterdir())
+    # the monitor's last test error (PRN protocol) is the error of the returned predictions
+    from benchmarks.table1 import evaluate
+
+    monitor = ctx.timings["C3DPO (gt-ortho)"]["monitor"]
+    assert monitor[-1]["test_mpjpe_mm"] == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)

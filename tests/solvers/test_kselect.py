@@ -70,3 +70,14 @@ def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch)
     assert len(calls) == 1  # the same tracks under another name are the same input
     solve(lowrank_sequence(40, 12, 2, seed=5, noise=0.01), "csf2")
     assert len(calls) == 2
+
+
+def test_the_k_solves_in_worker_processes_give_the_sequential_result():
+    from joblib import parallel_config
+
+    seq = lowrank_sequence(60, 12, 2, seed=1, cameras="random", noise=0.005)
+    one = solve(seq, "csf2")
+    with parallel_config(backend="loky", n_jobs=2, inner_max_num_threads=1):
+        two = solve(seq, "csf2")
+    assert two.info["K"] == one.info["K"] and two.info["agreement"] == pytest.approx(one.info["agreement"])
+    np.testing.assert_allclose(two.points_3d, one.points_3d)
