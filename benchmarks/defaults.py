@@ -110,8 +110,11 @@ def run_cell(job: str, method: str, k: int | None, missing: float) -> dict:
     except NRSfMError as exc:
         return {**row, "status": "not run", "why": str(exc), "seconds": time.perf_counter() - t0}
     chosen = rec.info.get("K") if k is None else k
-    return {**row, "status": "ok", "e3d": e3d(rec.points_3d, seq.points_3d), "seconds": rec.runtime_s,
-            "chosen_K": chosen}
+    out = {**row, "status": "ok", "e3d": e3d(rec.points_3d, seq.points_3d), "seconds": rec.runtime_s,
+           "chosen_K": chosen}
+    if "agreement" in rec.info:  # the agreement rule's distances to its reference, by K
+        out["agreement"] = {str(k): v for k, v in rec.info["agreement"].items()}
+    return out
 
 
 def summarise(rows: list[dict]) -> tuple[list[list], list[dict]]:

@@ -45,19 +45,37 @@ _REFERENCES: OrderedDict[str, np.ndarray] = OrderedDict()
 _REFERENCES_KEPT = 4
 
 
+def _empnd_shapes(seq: Sequence) -> np.ndarray | NRSfMError:
+    """EM-PND's `(F, P, 3)` shapes at its defaults, or the error that stopped it (returned, so that a worker
+    process hands it back)."""
+    from nrsfm.solvers.registry import get_solver
+
+    spec = get_solver("empnd")
+    try:
+        return spec.solve.__wrapped__(seq, spec.params()).points_3d
+    except NRSfMError as exc:
+        return exc
+
+
+def _remember(key: str, shapes: np.ndarray) -> None:
+    _REFERENCES[key] = shapes
+    _REFERENCES.move_to_end(key)
+    while len(_REFERENCES) > _REFERENCES_KEPT:
+        _REFERENCES.popitem(last=False)
+
+
 def reference_shapes(seq: Sequence) -> np.ndarray:
     """`(F, P, 3)` camera-frame shapes of EM-PND at its defaults: the reference of the agreement rule.
 
     The last few are kept by a digest of the tracks, so CSF2 and SPM on the same input compute it once."""
-    from nrsfm.solvers.registry import get_solver
     from nrsfm.solvers.starts import tracks_digest
 
     key = tracks_digest(seq)
     if key not in _REFERENCES:
-        spec = get_solver("empnd")
-        _REFERENCES[key] = spec.solve.__wrapped__(seq, spec.params()).points_3d
-        while len(_REFERENCES) > _REFERENCES_KEPT:
-            _REFERENCES.popitem(last=False)
+        shapes = _empnd_shapes(seq)
+        if isinstance(shapes, NRSfMError):
+            raise shapes
+        _remember(key, shapes)
     _REFERENCES.move_to_end(key)
     return _REFERENCES[key].copy()
 
@@ -68,6 +86,18 @@ def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction
         return solve_k(k)
     except SolverError:
         return None
+
+
+def _nearest(ks: list[int], recs: list[Reconstruction | None],
+             reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
+    from nrsfm.metrics import e3d
+
+    dist = {k: float("nan") if rec is None else e3d(rec.points_3d, reference) for k, rec in zip(ks, recs)}
+    solved = [k for k, rec in zip(ks, recs) if rec is not None]
+    if not solved:
+        raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
+    best = min(solved, key=lambda k: (not np.isfinite(dist[k]), dist[k]))  # ties: the smallest K
+    return recs[ks.index(best)], dist
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
@@ -85,16 +115,8 @@ def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
     """
     from joblib import Parallel, delayed
 
-    from nrsfm.metrics import e3d
-
     ks = list(ks)
-    recs = Parallel()(delayed(_attempt)(solve_k, k) for k in ks)
-    dist = {k: float("nan") if rec is None else e3d(rec.points_3d, reference) for k, rec in zip(ks, recs)}
-    solved = [k for k, rec in zip(ks, recs) if rec is not None]
-    if not solved:
-        raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
-    best = min(solved, key=lambda k: (not np.isfinite(dist[k]), dist[k]))  # ties: the smallest K
-    return recs[ks.index(best)], dist
+    return _nearest(ks, Parallel()(delayed(_attempt)(solve_k, k) for k in ks), reference)
 
 
 def _solve_fixed(solver: str, seq: Sequence, params: Any, k: int | None = None) -> Reconstruction:
@@ -107,14 +129,24 @@ def _solve_fixed(solver: str, seq: Sequence, params: Any, k: int | None = None) 
 
 def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
     """The registered ``solver`` on ``seq`` with the K among ``ks`` nearest EM-PND's reconstruction
-    (:func:`agreement_k`), the distances in ``info["agreement"]``. Where EM-PND refuses the tracks (degenerate
-    input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
-    try:
-        reference = reference_shapes(seq)
-    except NRSfMError as exc:
-        rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
-        rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {exc})")
-        return rec
-    rec, dist = agreement_k(functools.partial(_solve_fixed, solver, seq, params), ks, reference)
+    (:func:`agreement_k`), the distances in ``info["agreement"]``. EM-PND runs in the same
+    :class:`joblib.Parallel` batch as the K solves unless its shapes are remembered. Where EM-PND refuses the
+    tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
+    from joblib import Parallel, delayed
+
+    from nrsfm.solvers.starts import tracks_digest
+
+    key = tracks_digest(seq)
+    solves = [delayed(_attempt)(functools.partial(_solve_fixed, solver, seq, params), k) for k in ks]
+    if key in _REFERENCES:
+        reference, recs = reference_shapes(seq), Parallel()(solves)
+    else:
+        reference, *recs = Parallel()([delayed(_empnd_shapes)(seq), *solves])
+        if isinstance(reference, NRSfMError):
+            rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
+            rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {reference})")
+            return rec
+        _remember(key, reference)
+    rec, dist = _nearest(list(ks), recs, reference)
     rec.info.update(k_rule="agreement", agreement=dist)
     return rec

@@ -81,3 +81,18 @@ def test_the_k_solves_in_worker_processes_give_the_sequential_result():
         two = solve(seq, "csf2")
     assert two.info["K"] == one.info["K"] and two.info["agreement"] == pytest.approx(one.info["agreement"])
     np.testing.assert_allclose(two.points_3d, one.points_3d)
+
+
+def test_where_the_reference_fails_the_fallback_rule_chooses_k_and_says_why(monkeypatch):
+    from nrsfm.solvers import kselect
+    from nrsfm.solvers.registry import get_solver
+
+    def refuse(seq, params):
+        raise SolverError("empnd: degenerate tracks")
+
+    monkeypatch.setattr(get_solver("empnd").solve, "__wrapped__", refuse)
+    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
+    seq = lowrank_sequence(40, 12, 2, seed=6, noise=0.01)
+    rec = solve(seq, "csf2")
+    assert rec.info["k_rule"].startswith("rank (the agreement rule's reference failed: empnd: degenerate")
+    assert "agreement" not in rec.info and rec.info["K"] == solve(seq, "csf2", k_rule="rank").info["K"]
