@@ -11,9 +11,10 @@ The rule (``k_rule="agreement"``, the default of CSF2 and SPM with ``K = 0``):
 
 No ground truth enters and nothing depends on a name. A K whose solution fell into a poor minimum disagrees with
 the reference and is passed over; so is a K too small to hold the motion. Cost: one EM-PND solve plus one solve
-per K (five on 17 joints, twelve on 37 or more points). CSF2's rank rule (``k_rule="rank"``) and SPM's energy
-rule (``k_rule="energy"``) cost one solve; the solvers that start from CSF2 (EM-PND, PR, EM-PPCA) use the rank
-rule. SPM starts from K = 2 because its K = 1 resembled a poor EM-PND reconstruction where SPM's own K = 5 was
+per K (five on 17 joints, twelve on 37 or more points), in one :class:`joblib.Parallel` batch (one process
+unless the caller's ``joblib.parallel_config`` asks for more; ``nrsfm solve --jobs N``). CSF2's rank rule
+(``k_rule="rank"``) and SPM's energy rule (``k_rule="energy"``) cost one solve; the solvers that start from CSF2
+(EM-PND, PR, EM-PPCA) use the rank rule. SPM starts from K = 2 because its K = 1 resembled a poor EM-PND reconstruction where SPM's own K = 5 was
 three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
 """
 
