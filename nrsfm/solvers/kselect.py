@@ -15,7 +15,8 @@ per K (five on 17 joints, twelve on 37 or more points), in one :class:`joblib.Pa
 unless the caller's ``joblib.parallel_config`` asks for more; ``nrsfm solve --jobs N``). CSF2's rank rule
 (``k_rule="rank"``) and SPM's energy rule (``k_rule="energy"``) cost one solve; the solvers that start from CSF2
 (EM-PND, PR, EM-PPCA) use the rank rule. SPM starts from K = 2 because its K = 1 resembled a poor EM-PND
-reconstruction where SPM's own K = 5 was three times better. Measured against the best fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
+reconstruction where SPM's own K = 5 was three times better. Measured against the best fixed K in
+``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
 """
 
 from __future__ import annotations
