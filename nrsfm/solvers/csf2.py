@@ -38,8 +38,9 @@ Units: W is divided by the power of two nearest its RMS (:func:`~nrsfm.lowrank.p
 floating point) so that tolerances and damping mean the same in any units.
 
 Automatic K and d (``K = 0`` / ``d = 0``; the authors set both by hand): d = ceil(0.1 F) as in the authors' demos,
-at least K + 1. K by ``k_rule``: ``"agreement"`` (the default) solves every K from 1 to the cap and keeps the one
-nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`); ``"rank"`` takes K from the rank of the
+at least K + 1. K by ``k_rule``: ``"agreement"`` (the default) solves every K from 1 to the cap and keeps the
+largest that agrees (within 5%) as well as any with a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`);
+``"rank"`` takes K from the rank of the
 tracks (:func:`~nrsfm.solvers.starts.auto_k`, one solve; it takes its cap on real motion capture, and it is the
 rule of the CSF2 starts of other solvers). The settings that reproduce the authors' numbers on the CMU files are
 a named table in ``benchmarks/classic.py``.
@@ -270,7 +271,7 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
 
 
 def _agreement(seq: Sequence, params: CSF2Params) -> Reconstruction:
-    """CSF2 with the K nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
+    """CSF2 with the K that agrees with a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
     from nrsfm.solvers.kselect import k_candidates, solve_by_agreement
 
     ks = k_candidates(seq.n_frames, seq.n_points)

@@ -29,7 +29,8 @@ Options that are not the authors' method, off by default:
 * ``refine_cameras=true``: the cameras refined by the shape step's nuclear norm (:func:`refine_cameras_nuclear`).
 
 K (``K = 0``), by ``k_rule``: ``"agreement"`` (the default) solves every K from 2 (the energy rule's floor) to
-12 with 3K < min(2F, P) and keeps the one nearest EM-PND's reconstruction (:mod:`nrsfm.solvers.kselect`);
+12 with 3K < min(2F, P) and keeps the largest that agrees (within 5%) as well as any with EM-PND's
+reconstruction (:mod:`nrsfm.solvers.kselect`);
 ``"energy"`` is :func:`auto_rank`, one solve: ``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r``,
 else the smallest K whose 3K singular values hold 99.5% of the energy. The authors' K per CMU file is a settings
 table of ``benchmarks/classic.py``.
@@ -518,7 +519,7 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
 
 
 def _agreement(seq: Sequence, params: SPMParams) -> Reconstruction:
-    """SPM with the K (from 2) nearest a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
+    """SPM with the K (from 2) that agrees with a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`)."""
     from nrsfm.solvers.kselect import k_candidates, solve_by_agreement
 
     ks = [k for k in k_candidates(seq.n_frames, seq.n_points) if k >= 2]

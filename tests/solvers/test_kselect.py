@@ -7,6 +7,7 @@ from nrsfm import Reconstruction, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.metrics import e3d
+from nrsfm.solvers import kselect
 from nrsfm.solvers.kselect import agreement_k, k_candidates
 
 
@@ -30,6 +31,20 @@ def test_agreement_keeps_the_k_nearest_the_reference_and_skips_a_failed_k():
         agreement_k(lambda k: solve_k(4), [4], reference)
 
 
+def test_agreement_keeps_the_largest_k_within_the_tolerance_of_the_nearest():
+    rng = np.random.default_rng(1)
+    reference = rng.standard_normal((30, 10, 3))
+    noise = rng.standard_normal(reference.shape)
+    scale = {1: 0.1, 2: 0.102, 3: 0.2, 4: 0.15}  # K = 2 is within 5% of the nearest (K = 1); K = 3 and 4 are not
+
+    def solve_k(k):
+        return Reconstruction(points_3d=reference + scale[k] * noise, rotations=None, method="fake")
+
+    rec, dist = agreement_k(solve_k, [1, 2, 3, 4], reference)
+    assert dist[1] < dist[2] <= (1 + kselect.TOLERANCE) * dist[1] < dist[4] < dist[3]
+    assert np.allclose(rec.points_3d, solve_k(2).points_3d)
+
+
 def test_k_candidates_keep_3k_below_the_frames_and_points():
     assert list(k_candidates(300, 17)) == [1, 2, 3, 4, 5]
     assert list(k_candidates(300, 41)) == list(range(1, 13))  # capped at 12
@@ -43,7 +58,8 @@ def test_csf2_default_k_is_the_agreement_rule_and_finds_the_k_of_low_rank_tracks
     rec = solve(seq, "csf2")
     dist = rec.info["agreement"]
     assert rec.info["k_rule"] == "agreement" and sorted(dist) == [1, 2, 3]
-    assert rec.info["K"] == min(dist, key=dist.get)
+    least = min(dist.values())
+    assert rec.info["K"] == max(k for k, d in dist.items() if d <= (1 + kselect.TOLERANCE) * least)
     assert e3d(rec.points_3d, seq.points_3d) <= 1.1 * min(e3d(solve(seq, "csf2", K=k).points_3d, seq.points_3d)
                                                           for k in (1, 2, 3))
     assert "agreement" not in solve(seq, "csf2", k_rule="rank").info
