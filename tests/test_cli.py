@@ -172,6 +172,8 @@ def test_solve_states_the_automatic_k_and_its_rule(tmp_path, capsys):
     assert "(rank rule)" in out
     code, out, _ = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "K=3")
     assert code == 0 and "K (automatic)" not in out
+    code, _, err = _run(capsys, "solve", str(path), "-m", "csf2", "--jobs", "0")
+    assert code == 2 and "--jobs: expected a number of processes >= 1, got 0" in err
 
 
 def test_methods_and_demo(tmp_path, capsys):
