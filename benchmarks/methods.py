@@ -189,13 +189,16 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
         return pred if ctx.c3dpo_inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][
             :, None, None]
 
+    truth_mm = np.concatenate([t.points_3d for t in split.test_truth])
+
+    def test_predictions(model):  # PRN's per-frame units, and millimetres
+        preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
+        return preds, np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
+
     def test_error(model):  # a diagnostic along training (--c3dpo-monitor); nothing is chosen with it
         from nrsfm.metrics import mpjpe_prn
 
-        preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
-        return {"test_mpjpe_mm": mpjpe_prn(np.concatenate([denormalize(p, t.points_3d) for p, t in
-                                                          zip(preds, split.test_truth)]),
-                                           np.concatenate([t.points_3d for t in split.test_truth]))}
+        return {"test_mpjpe_mm": mpjpe_prn(test_predictions(model)[1], truth_mm)}
 
     inputs, weights = normalised(split.train_inputs)
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
@@ -220,10 +223,8 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
                             "cache": str(cache)}
     if info.get("monitor"):
         ctx.timings[key]["monitor"] = info["monitor"]
-    preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
+    preds, pred_mm = test_predictions(model)
     # C3DPO's own protocol beside the table's: root-centred MPJPE, better of raw and depth-flipped, and stress
-    pred_mm = np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
-    truth_mm = np.concatenate([t.points_3d for t in split.test_truth])
     ctx.timings[key]["own_protocol"] = {"mpjpe_best_flip_mm": mpjpe_best_flip(pred_mm, truth_mm),
                                         "stress_mm": stress(pred_mm, truth_mm)}
     return preds

@@ -48,7 +48,8 @@ def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
     return range(1, max(1, min(k_max, (min(2 * n_frames, n_points) - 1) // 3)) + 1)
 
 
-#: The last references computed in this process, by input (:func:`reference_shapes`).
+#: EM-PND's shapes for the last few inputs of this process, by :func:`~nrsfm.solvers.starts.tracks_digest`:
+#: CSF2 and SPM on the same tracks compute the reference once.
 _REFERENCES: OrderedDict[str, np.ndarray] = OrderedDict()
 _REFERENCES_KEPT = 4
 
@@ -72,22 +73,6 @@ def _remember(key: str, shapes: np.ndarray) -> None:
         _REFERENCES.popitem(last=False)
 
 
-def reference_shapes(seq: Sequence) -> np.ndarray:
-    """`(F, P, 3)` camera-frame shapes of EM-PND at its defaults: the reference of the agreement rule.
-
-    The last few are kept by a digest of the tracks, so CSF2 and SPM on the same input compute it once."""
-    from nrsfm.solvers.starts import tracks_digest
-
-    key = tracks_digest(seq)
-    if key not in _REFERENCES:
-        shapes = _empnd_shapes(seq)
-        if isinstance(shapes, NRSfMError):
-            raise shapes
-        _remember(key, shapes)
-    _REFERENCES.move_to_end(key)
-    return _REFERENCES[key].copy()
-
-
 def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction | None:
     """``solve_k(k)``, None where it raised :class:`~nrsfm.errors.SolverError`."""
     try:
@@ -97,7 +82,7 @@ def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction
 
 
 def _keep(ks: list[int], recs: list[Reconstruction | None],
-             reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
+          reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
     from nrsfm.metrics import e3d
 
     dist = {k: float("nan") if rec is None else e3d(rec.points_3d, reference) for k, rec in zip(ks, recs)}
@@ -152,7 +137,8 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
     key = tracks_digest(seq)
     solves = [delayed(_attempt)(functools.partial(_solve_fixed, solver, seq, params), k) for k in ks]
     if key in _REFERENCES:
-        reference, recs = reference_shapes(seq), Parallel()(solves)
+        _REFERENCES.move_to_end(key)
+        reference, recs = _REFERENCES[key], Parallel()(solves)
     else:
         reference, *recs = Parallel()([delayed(_empnd_shapes)(seq), *solves])
         if isinstance(reference, NRSfMError):
