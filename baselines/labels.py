@@ -19,9 +19,11 @@ A solver that fails on a cut, or returns shapes that are not finite or whose dep
 ``DIVERGED_DEPTH`` times the 2D spread, is recorded as failed; those frames get no label and are left out of
 training (counted in the summary), never replaced.
 
-Solver settings: each solver's defaults, except that CSF2 and SPM choose K by their one-solve rules (rank and
-energy, :data:`LABEL_DEFAULTS`): their default agreement rule (:mod:`nrsfm.solvers.kselect`) solves every K and
-EM-PND besides, five or six solves per 17-joint cut in place of one. ``--set`` overrides them.
+Solver settings: each solver's defaults, except for a cost bound (:data:`LABEL_DEFAULTS`; ``--set`` overrides
+them). CSF2 and SPM choose K by their one-solve rules (rank and energy): their default agreement rule
+(:mod:`nrsfm.solvers.kselect`) solves every K and EM-PND besides, five or six solves per 17-joint cut in place of
+one. PR stops after 200 L-BFGS iterations (its default 2,000 runs about 1,500 on a 65-frame, 17-joint cut, 7 s):
+the bound that keeps Human3.6M's 2,920 training cuts within about 30 minutes on 2 cores, as CSF2's.
 
 Depth reflection. Orthographic NRSfM recovers each cut up to a global reflection ``z -> -z``, and labels of
 mixed handedness would teach a network to flatten the depth. A mirror image negates the signed volume of every
@@ -298,7 +300,7 @@ def resolve_reflections(reconstructions: list[np.ndarray], n_tuples: int = 40, i
 
 
 #: The label pipeline's settings where they differ from a solver's defaults (the module docstring).
-LABEL_DEFAULTS = {"csf2": {"k_rule": "rank"}, "spm": {"k_rule": "energy"}}
+LABEL_DEFAULTS = {"csf2": {"k_rule": "rank"}, "spm": {"k_rule": "energy"}, "pr": {"max_iter": 200}}
 
 
 def make_labels(sequences: list[Sequence], method: str, params: dict | None = None, *,
