@@ -190,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
                                                                    "128 with --quick)")
     p.add_argument("--c3dpo-rescale", type=float, default=1.0,
                    help="C3DPO's keypoint_rescale: the centred keypoints are multiplied by it (default 1)")
+    p.add_argument("--c3dpo-lr", type=float, default=1e-3,
+                   help="C3DPO's learning rate before its two drops (default: the authors' 1e-3)")
     p.add_argument("--c3dpo-optimizer", choices=["sgd", "adam"], default="sgd",
                    help="C3DPO's optimiser: the authors' Human3.6M SGD (default) or Adam, their code's other breed")
     p.add_argument("--c3dpo-monitor", action="store_true",
@@ -223,13 +225,15 @@ def _run(args: argparse.Namespace) -> int:
         args.c3dpo_batch = 128 if args.quick else 1024
     if args.c3dpo_iterations is not None and args.c3dpo_iterations < 1:
         raise ValidationError(f"--c3dpo-iterations: expected >= 1, got {args.c3dpo_iterations}")
+    if not args.c3dpo_lr > 0:
+        raise ValidationError(f"--c3dpo-lr: expected a learning rate > 0, got {args.c3dpo_lr}")
     if args.jobs < 1 or args.c3dpo_batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {args.c3dpo_batch}")
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
                      progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
                      c3dpo_batch=args.c3dpo_batch, c3dpo_iterations=args.c3dpo_iterations,
                      c3dpo_rescale=args.c3dpo_rescale, c3dpo_inputs=args.c3dpo_inputs,
-                     c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor,
+                     c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor, c3dpo_lr=args.c3dpo_lr,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -302,7 +306,8 @@ def _run(args: argparse.Namespace) -> int:
                         label_params=ctx.label_params,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
-                               "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs},
+                               "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs,
+                               "lr": args.c3dpo_lr},
                         timings=ctx.timings, total_seconds=total)
     write_csv(out / "table1.csv", rows_csv)
     write_json(out / "table1.json", {"meta": meta, "results": [

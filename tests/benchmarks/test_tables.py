@@ -171,3 +171,10 @@ def test_all_runs_the_chosen_tables_and_summarises(tmp_path, capsys, monkeypatch
     text = (tmp_path / "o" / "summary.md").read_text()
     assert "PRN beats PRN w/o reg: yes" in text and "| PRN-FCN | 0.2000 |" in text
     assert all_tables.main(["--tables", "nope"]) == 2
+
+
+@pytest.mark.parametrize("argv, message", [(["--c3dpo-lr", "0"], "--c3dpo-lr"),
+                                           (["--c3dpo-batch", "1"], "--c3dpo-batch")])
+def test_table1_refuses_bad_c3dpo_settings(tmp_path, capsys, argv, message):
+    assert table1.main(argv + ["--quick", "--out", str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
