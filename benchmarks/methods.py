@@ -204,7 +204,7 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
     iterations = ctx.c3dpo_iterations or max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))
     config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, keypoint_rescale=ctx.c3dpo_rescale,
-                         optimizer=ctx.c3dpo_optimizer, lr=ctx.c3dpo_lr,
+                         optimizer=ctx.c3dpo_optimizer, lr=ctx.c3dpo_lr, precision=ctx.c3dpo_precision,
                          seed=ctx.seed, device=ctx.device,
                          checkpoint_every=max(100, iterations // 20))
     cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,

@@ -1,5 +1,6 @@
 """C3DPO: the canonicalisation loss, the pseudo-Huber reprojection, training and prediction."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -109,3 +110,19 @@ def test_the_monitor_runs_at_every_checkpoint_in_eval_mode(tmp_path):
     _, record = train_c3dpo(x, w, config, tmp_path, progress=False, monitor=monitor)
     assert record["monitor"] == [{"iteration": 10, "n_points": 12}, {"iteration": 20, "n_points": 12}]
     assert modes == [False, False]
+
+
+def test_bf16_runs_the_trunks_in_bfloat16_and_keeps_the_outputs_and_weights_float32():
+    torch.manual_seed(0)
+    w, v = torch.randn(16, 2, 12) * 0.3, torch.ones(16, 12)
+    fp32 = C3DPO(12, dataclasses.replace(SMALL, width=64)).eval()
+    bf16 = C3DPO(12, dataclasses.replace(SMALL, width=64, precision="bf16")).eval()
+    bf16.load_state_dict(fp32.state_dict())
+    dtypes = []
+    bf16.phi[0].register_forward_hook(lambda mod, inp, out: dtypes.append(out.dtype))
+    a, b = fp32(w, v)["camera"], bf16(w, v)["camera"]
+    assert dtypes == [torch.bfloat16] and b.dtype == torch.float32
+    assert not torch.equal(a, b) and torch.allclose(a, b, atol=0.05 * a.abs().max().item())
+    assert all(p.dtype == torch.float32 for p in bf16.parameters())
+    with pytest.raises(Exception, match="precision"):
+        C3DPOConfig(precision="fp16")
