@@ -126,3 +126,19 @@ def test_bf16_runs_the_trunks_in_bfloat16_and_keeps_the_outputs_and_weights_floa
     assert all(p.dtype == torch.float32 for p in bf16.parameters())
     with pytest.raises(Exception, match="precision"):
         C3DPOConfig(precision="fp16")
+
+
+def test_the_speed_study_times_both_precisions_and_refuses_a_bad_batch(tmp_path, capsys):
+    import json
+
+    from benchmarks.studies import speed_c3dpo
+
+    assert speed_c3dpo.main(["--batch", "8", "--repeats", "1", "--warmup", "0", "--device", "cpu",
+                             "--out", str(tmp_path)]) == 0
+    out = json.loads((tmp_path / "speed_c3dpo.json").read_text())
+    assert [r["precision"] for r in out["results"]] == ["fp32", "bf16"]
+    assert all(r["iteration_s"] > 0 for r in out["results"]) and out["speedup"] > 0
+    assert "times faster" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        speed_c3dpo.main(["--batch", "1", "--out", str(tmp_path)])
+    assert exc.value.code == 2
