@@ -231,6 +231,20 @@ def _centre(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (w - mean).transpose(0, 2, 1)
 
 
+def make_optimizer(model: C3DPO, config: C3DPOConfig) -> torch.optim.Optimizer:
+    """``config``'s optimiser over ``model``'s parameters (SGD with momentum, or Adam)."""
+    if config.optimizer == "adam":
+        return torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
+    return torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay)
+
+
+def training_losses(model: C3DPO, w: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The reprojection and canonicalisation losses of one training minibatch: `(N, 2, P)` centred keypoints ``w``,
+    `(N, P)` visibilities ``v``."""
+    pred = model(w, v)
+    return model.reprojection_loss(pred["camera"], w, v), model.canonicalisation_loss(pred["canonical"])
+
+
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
                 *, resume: bool = True, progress: bool = True,
                 monitor: Callable[[C3DPO], dict] | None = None) -> tuple[C3DPO, dict]:
@@ -246,11 +260,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     model = C3DPO(inputs.shape[1], config).to(device)
-    if config.optimizer == "adam":
-        opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
-    else:
-        opt = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum,
-                              weight_decay=config.weight_decay)
+    opt = make_optimizer(model, config)
     out = Path(out_dir) if out_dir is not None else None
     ckpt = out / "checkpoint.pt" if out is not None else None
     start, history, monitored = 0, [], []
@@ -275,9 +285,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
             g["lr"] = config.lr_at(it)
         idx = torch.as_tensor(rng.integers(0, len(inputs), config.batch), device=device)
         w, v = w_all[idx], v_all[idx]
-        pred = model(w, v)
-        loss_rep = model.reprojection_loss(pred["camera"], w, v)
-        loss_can = model.canonicalisation_loss(pred["canonical"])
+        loss_rep, loss_can = training_losses(model, w, v)
         loss = loss_rep + loss_can
         opt.zero_grad(set_to_none=True)
         loss.backward()

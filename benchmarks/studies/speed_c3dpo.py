@@ -26,25 +26,23 @@ from benchmarks.common import markdown_table, run_metadata, write_json
 def measure(precision: str, device: str = "cpu", batch: int = 256, repeats: int = 20, warmup: int = 3,
             seed: int = 0) -> dict:
     """Median seconds of one training iteration of batch ``batch`` at ``precision``."""
-    from baselines.c3dpo import C3DPO, C3DPOConfig
+    from baselines.c3dpo import C3DPO, C3DPOConfig, make_optimizer, training_losses
 
     dev = torch.device(device)
     sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
     torch.manual_seed(seed)
     config = C3DPOConfig(batch=batch, precision=precision)
     model = C3DPO(17, config).to(dev).train()
-    opt = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=config.momentum,
-                          weight_decay=config.weight_decay)
+    opt = make_optimizer(model, config)
     w = torch.randn(batch, 2, 17, device=dev) * 0.25
     v = torch.ones(batch, 17, device=dev)
 
     def iteration() -> float:
         sync()
         t0 = time.perf_counter()
-        pred = model(w, v)
-        loss = model.reprojection_loss(pred["camera"], w, v) + model.canonicalisation_loss(pred["canonical"])
+        loss_rep, loss_can = training_losses(model, w, v)
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        (loss_rep + loss_can).backward()
         opt.step()
         sync()
         return time.perf_counter() - t0
