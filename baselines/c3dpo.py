@@ -283,16 +283,20 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     for it in range(start, config.iterations):
         for g in opt.param_groups:
             g["lr"] = config.lr_at(it)
-        idx = torch.as_tensor(rng.integers(0, len(inputs), config.batch), device=device)
+        idx = torch.from_numpy(rng.integers(0, len(inputs), config.batch))
+        if device.type == "cuda":  # from pinned memory without waiting for the queued kernels
+            idx = idx.pin_memory()
+        idx = idx.to(device, non_blocking=True)
         w, v = w_all[idx], v_all[idx]
         loss_rep, loss_can = training_losses(model, w, v)
         loss = loss_rep + loss_can
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        if not torch.isfinite(loss):
-            raise ValidationError(f"C3DPO: the loss became {loss.item()} at iteration {it}; lower the learning rate")
         opt.step()
-        if (it + 1) % 100 == 0 or it == start:
+        if (it + 1) % 100 == 0 or it == start:  # the only host synchronisations of the loop
+            if not torch.isfinite(loss):
+                raise ValidationError(f"C3DPO: the loss became {loss.item()} by iteration {it + 1}; lower the "
+                                      f"learning rate")
             history.append({"iteration": it + 1, "reprojection": loss_rep.item(), "canonicalisation": loss_can.item(),
                             "lr": config.lr_at(it)})
             bar.set_postfix(rep=f"{loss_rep.item():.3g}", can=f"{loss_can.item():.3g}")
