@@ -293,15 +293,16 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        if (it + 1) % 100 == 0 or it == start:  # the only host synchronisations of the loop
-            if not torch.isfinite(loss):
-                raise ValidationError(f"C3DPO: the loss became {loss.item()} by iteration {it + 1}; lower the "
-                                      f"learning rate")
+        logged = (it + 1) % 100 == 0 or it == start
+        at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations
+        if (logged or at_checkpoint) and not torch.isfinite(loss):  # the loop's only host synchronisations
+            raise ValidationError(f"C3DPO: the loss became {loss.item()} by iteration {it + 1}; lower the learning "
+                                  f"rate")
+        if logged:
             history.append({"iteration": it + 1, "reprojection": loss_rep.item(), "canonicalisation": loss_can.item(),
                             "lr": config.lr_at(it)})
             bar.set_postfix(rep=f"{loss_rep.item():.3g}", can=f"{loss_can.item():.3g}")
         bar.update(1)
-        at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations
         if monitor is not None and at_checkpoint:
             monitored.append({"iteration": it + 1, **monitor(model.eval())})
             model.train()

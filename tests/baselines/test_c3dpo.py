@@ -65,6 +65,16 @@ def test_c3dpo_trains_resumes_and_keeps_the_input_coordinates(tmp_path):
                     progress=False)
 
 
+
+def test_a_diverging_training_is_stopped_with_a_clear_error_and_writes_no_model(tmp_path):
+    seq = lowrank_sequence(200, 12, 2, seed=0)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    # an lr far too large: the weights overflow within the first checkpoint interval, where the loss is checked
+    config = dataclasses.replace(SMALL, lr=1e12, iterations=50, checkpoint_every=20)
+    with pytest.raises(ValueError, match="lower the learning rate"):
+        train_c3dpo(x, np.ones(x.shape[:2]), config, tmp_path, progress=False)
+    assert not (tmp_path / "model.pt").exists() and not (tmp_path / "checkpoint.pt").exists()
+
 def test_keypoint_rescale_scales_the_networks_inputs_and_divides_their_shapes_back():
     torch.manual_seed(0)
     small = dict(basis=3, width=16, n_layers=1)
