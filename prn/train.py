@@ -10,7 +10,9 @@ schedule (50k + 20k for the default 70k).
 Checkpoints are written atomically every ``checkpoint_every`` iterations to
 ``<out>/checkpoint.pt``; :func:`train` continues from it when ``resume`` is
 True. A NaN/inf loss stops training with :class:`TrainingError` naming the
-iteration and the last good checkpoint.
+iteration and the last good checkpoint (on a GPU the loss is checked at the
+logged iterations and before every checkpoint, so that the device never waits
+for the host otherwise).
 """
 
 from __future__ import annotations
@@ -185,6 +187,14 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
                       stop_after=stop_after, objective=objective)
 
 
+def _to_device(indices: np.ndarray, device: torch.device) -> torch.Tensor:
+    """Minibatch indices on ``device``; to a GPU from pinned memory, without waiting for the queued work."""
+    idx = torch.from_numpy(np.ascontiguousarray(indices))
+    if device.type != "cuda":
+        return idx
+    return idx.pin_memory().to(device, non_blocking=True)
+
+
 def _point_groups(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, k: int):
     """Split the points of `(N, P, 3)` shapes, `(N, P, 2)` targets and `(N, P)` weights at random into ``k``
     groups of ``P // k`` points, stacked along the frame axis point-group-major: `(k N, P // k, ...)`, so that every
@@ -275,12 +285,13 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             _freeze_bn_stats(model)
         for g in opt.param_groups:
             g["lr"] = config.lr_at(it)
+        logged = (it + 1) % log_every == 0 or it == start
+        at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == end
         if objective is not None:
-            idx = torch.as_tensor(objective.sample(rng), device=device)
+            idx = _to_device(objective.sample(rng), device)
             loss = objective.loss(forward(idx, xw_all[idx]), idx)
         else:
-            idx = torch.as_tensor(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap),
-                                  device=device)
+            idx = _to_device(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap), device)
             xw, yw = xw_all[idx], yw_all[idx]
             if config.missing_points > 0:
                 keep = (torch.rand(len(idx), yw.shape[1], device=device) >= config.missing_points).to(yw.dtype)
@@ -290,22 +301,24 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             pred, y = forward(idx, xw), y_all[idx]
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
-            loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size, parts=parts)
+            loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size,
+                           parts=parts if logged else None)  # filling it waits for the device
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        if not torch.isfinite(loss):
+        # on a GPU the check waits for the queued work, so it runs at the logged iterations and checkpoints only
+        if (device.type != "cuda" or logged or at_checkpoint) and not torch.isfinite(loss):
             where = f"; the last good checkpoint is {ckpt_path}" if ckpt_path and ckpt_path.exists() else ""
             raise TrainingError(f"the loss became {loss.item()} at iteration {it}{where}; lower the learning rate "
                                 "or check the inputs for NaN")
         opt.step()
-        if (it + 1) % log_every == 0 or it == start:
+        if logged:
             entry = {"iteration": it + 1, "loss": loss.item(), "lr": config.lr_at(it)}
             if objective is None:  # the PR loss's two terms
                 entry.update(data=parts.data, nuclear=parts.nuclear)
             history.append(entry)
             bar.set_postfix(loss=f"{history[-1]['loss']:.4g}")
         bar.update(1)
-        if ckpt_path is not None and ((it + 1) % config.checkpoint_every == 0 or it + 1 == end):
+        if ckpt_path is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                           "history": history, "config": dataclasses.asdict(config),
                           "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
