@@ -165,34 +165,50 @@ def gt_3d(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _cached_supervised(split, ctx, "GT 3D", truth, {"targets": "ground truth"})
 
 
+def c3dpo_unit(train_inputs: list, inputs: str = "centred") -> float:
+    """C3DPO's one input scale: ``"centred"`` (the authors'): every frame keeps its size, all divided by the
+    training frames' median xy norm; ``"prn"``: 1 (each frame is divided by its own xy norm, as the other rows see
+    them)."""
+    from prn.data import normalize_2d
+
+    if inputs not in ("prn", "centred"):
+        raise ValueError(f"c3dpo_inputs: expected 'prn' or 'centred', got {inputs!r}")
+    if inputs == "prn":
+        return 1.0
+    return float(np.median(np.concatenate([normalize_2d(s.points_2d, s.visibility)[1] for s in train_inputs])))
+
+
+def c3dpo_inputs(seqs: list, unit: float, inputs: str = "centred") -> tuple[np.ndarray, np.ndarray]:
+    """`(N, P, 2)` keypoints and `(N, P)` weights of ``seqs`` as C3DPO reads them (:func:`c3dpo_unit`): every
+    point, the never-detected ones zero with visibility 0."""
+    from prn.data import normalize_2d
+
+    w = np.concatenate([s.weights for s in seqs])
+    if inputs == "prn":
+        return np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]), w
+    return np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None] / unit, w
+
+
+def c3dpo_predict(model, seq, unit: float, inputs: str = "centred") -> np.ndarray:
+    """`(F, P, 3)` shapes of C3DPO ``model`` for ``seq``, in PRN's per-frame units (as the harness scores them)."""
+    from baselines.c3dpo import predict_c3dpo
+    from prn.data import normalize_2d
+
+    pred = predict_c3dpo(model, *c3dpo_inputs([seq], unit, inputs))
+    return pred if inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][:, None, None]
+
+
 @register_method("C3DPO", ("gt-ortho", "gt-persp", "sh"), "C3DPO (Novotny et al., ICCV 2019), reimplemented")
 def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
-    from baselines.c3dpo import PAPER_ITERATIONS, C3DPOConfig, load_c3dpo, predict_c3dpo, train_c3dpo
+    from baselines.c3dpo import PAPER_ITERATIONS, C3DPOConfig, load_c3dpo, train_c3dpo
     from nrsfm.metrics import mpjpe_best_flip, stress
-    from prn.data import denormalize, normalize_2d
+    from prn.data import denormalize
 
-    if ctx.c3dpo_inputs not in ("prn", "centred"):
-        raise ValueError(f"c3dpo_inputs: expected 'prn' or 'centred', got {ctx.c3dpo_inputs!r}")
-    # "centred" (the authors'): every frame keeps its size, all divided by one scale, the training frames' median
-    # xy norm; "prn": each frame divided by its own xy norm, as the other rows see them
-    unit = 1.0 if ctx.c3dpo_inputs == "prn" else float(np.median(np.concatenate(
-        [normalize_2d(s.points_2d, s.visibility)[1] for s in split.train_inputs])))
-
-    def normalised(seqs):  # every point, the never-detected ones with visibility 0 (C3DPO reads visibility)
-        if ctx.c3dpo_inputs == "prn":
-            return (np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]),
-                    np.concatenate([s.weights for s in seqs]))
-        w = np.concatenate([s.weights for s in seqs])
-        return np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None] / unit, w
-
-    def to_prn_units(pred, seq):  # the harness takes predictions in PRN's per-frame units
-        return pred if ctx.c3dpo_inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][
-            :, None, None]
-
+    unit = c3dpo_unit(split.train_inputs, ctx.c3dpo_inputs)
     truth_mm = np.concatenate([t.points_3d for t in split.test_truth])
 
     def test_predictions(model):  # PRN's per-frame units, and millimetres
-        preds = [to_prn_units(predict_c3dpo(model, *normalised([seq])), seq) for seq in split.test_inputs]
+        preds = [c3dpo_predict(model, seq, unit, ctx.c3dpo_inputs) for seq in split.test_inputs]
         return preds, np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
 
     def test_error(model):  # a diagnostic along training (--c3dpo-monitor); nothing is chosen with it
@@ -200,7 +216,7 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
 
         return {"test_mpjpe_mm": mpjpe_prn(test_predictions(model)[1], truth_mm)}
 
-    inputs, weights = normalised(split.train_inputs)
+    inputs, weights = c3dpo_inputs(split.train_inputs, unit, ctx.c3dpo_inputs)
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
     iterations = ctx.c3dpo_iterations or max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))
     config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, keypoint_rescale=ctx.c3dpo_rescale,

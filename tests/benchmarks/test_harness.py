@@ -389,3 +389,25 @@ def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys,
 
     monitor = ctx.timings["C3DPO (gt-ortho)"]["monitor"]
     assert monitor[-1]["test_mpjpe_mm"] == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
+
+
+def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
+    """The study's error of a trained C3DPO on a set of sequences is the harness's test error on them; a missing
+    model file is a clear error."""
+    from baselines.c3dpo import load_c3dpo
+    from benchmarks.methods import c3dpo, c3dpo_unit
+    from benchmarks.registry import RunContext, Split
+    from benchmarks.studies import c3dpo_fit
+    from benchmarks.table1 import evaluate
+    from nrsfm.datasets.synthetic import human_sequences
+
+    seqs = human_sequences(["S1", "S5"], n_frames=20, takes=1, seed=0, motions=("walking",))
+    split = Split(seqs, seqs, seqs[:1], seqs[:1], "gt-ortho", tag="tiny-fit")
+    ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred")
+    pred = c3dpo(split, ctx)[0]
+    model = load_c3dpo(next((tmp_path / "cache").glob("C3DPO-*/model.pt")), "cpu")
+    error, frames = c3dpo_fit.mpjpe_of(model, seqs[:1], c3dpo_unit(seqs), "centred")
+    assert frames == seqs[0].n_frames
+    assert error == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
+    assert c3dpo_fit.main([str(tmp_path / "none.pt"), "--root", str(tmp_path)]) == 2
+    assert "no such model file" in capsys.readouterr().err

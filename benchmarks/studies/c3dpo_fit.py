@@ -1,0 +1,81 @@
+"""A trained C3DPO's 3D error on its own training data beside its test error.
+
+    python -m benchmarks.studies.c3dpo_fit MODEL [--root DIR] [--input gt-ortho|gt-persp] [--fraction 0.17]
+                                           [--c3dpo-inputs centred|prn] [--seed 0] [--out DIR]
+
+MODEL is a ``model.pt`` that ``benchmarks.table1`` trained (under ``<out>/cache/C3DPO-*/``). The keypoints are
+prepared as the harness prepares them for C3DPO (:func:`benchmarks.methods.c3dpo_inputs`, the training frames'
+median xy norm as the unit), and the predictions are scored with PRN's protocol (MPJPE, mm) on a random
+``fraction`` of the training sequences (S1, S5-S8; drawn with ``seed``) and on every test sequence. C3DPO never
+sees 3D, so a training error as high as the test error says the model's objective settles there on its own
+training data: the error is not over-fitting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import markdown_table, run_metadata, run_table, write_json
+from nrsfm.errors import ValidationError
+
+
+def mpjpe_of(model, sequences: list, unit: float, inputs: str) -> tuple[float, int]:
+    """PRN-protocol MPJPE (mm) of ``model`` over ``sequences`` and their frame count."""
+    from benchmarks.methods import c3dpo_predict
+    from nrsfm.metrics import mpjpe_prn
+    from prn.data import denormalize
+
+    pred = np.concatenate([denormalize(c3dpo_predict(model, s, unit, inputs), s.points_3d) for s in sequences])
+    truth = np.concatenate([s.points_3d for s in sequences])
+    return mpjpe_prn(pred, truth), len(truth)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from baselines.c3dpo import load_c3dpo
+    from benchmarks.methods import c3dpo_unit
+    from nrsfm.datasets import find_dataset, h36m
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.c3dpo_fit")
+    p.add_argument("model", help="a C3DPO model.pt written by benchmarks.table1")
+    p.add_argument("--root", default=None, help="data folder holding h36m/ (default: $NRSFM_DATA)")
+    p.add_argument("--input", default="gt-ortho", choices=("gt-ortho", "gt-persp"))
+    p.add_argument("--fraction", type=float, default=0.17, help="share of the training sequences scored")
+    p.add_argument("--c3dpo-inputs", default="centred", choices=("centred", "prn"),
+                   help="as --c3dpo-inputs of benchmarks.table1 when the model was trained")
+    p.add_argument("--stride", type=int, default=1, help="Human3.6M frame stride (5 for the public 50 fps files)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/c3dpo_fit")
+    args = p.parse_args(argv)
+
+    def run(args: argparse.Namespace) -> int:
+        if not 0 < args.fraction <= 1:
+            raise ValidationError(f"--fraction: expected a share in (0, 1], got {args.fraction}")
+        if not Path(args.model).is_file():
+            raise ValidationError(f"{args.model}: no such model file; give the model.pt under "
+                                  "<out>/cache/C3DPO-*/ of a benchmarks.table1 run")
+        root = find_dataset("h36m", args.root)
+        train, test = (h36m.load_h36m(root, list(subjects), input=args.input, stride=args.stride, source_fps=50.0)
+                       for subjects in (h36m.TRAIN_SUBJECTS,
+                                        [t for t in h36m.TEST_SUBJECTS if (root / t).is_dir()]))
+        unit = c3dpo_unit(train, args.c3dpo_inputs)
+        model = load_c3dpo(args.model, "cpu")
+        rng = np.random.default_rng(args.seed)
+        chosen = [train[i] for i in np.sort(rng.choice(len(train), max(1, round(args.fraction * len(train))),
+                                                       replace=False))]
+        rows = [["training (a random share)", *mpjpe_of(model, chosen, unit, args.c3dpo_inputs)],
+                ["test", *mpjpe_of(model, test, unit, args.c3dpo_inputs)]]
+        print(markdown_table(["sequences", "MPJPE (mm, PRN protocol)", "frames"], rows))
+        write_json(Path(args.out) / "c3dpo_fit.json", {"meta": run_metadata(model=str(args.model), input=args.input,
+                                                                          fraction=args.fraction, seed=args.seed),
+                                                        "results": rows})
+        return 0
+
+    return run_table("c3dpo_fit", run, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
