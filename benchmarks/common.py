@@ -167,6 +167,23 @@ def write_json(path: Path, obj: Any) -> None:
     write_text_atomic(path, json.dumps(obj, indent=2, default=str))
 
 
+def checkpoint_progress(run: Path) -> dict[str, Any]:
+    """Where the trainings of a table run (its ``--out`` folder ``run``) got to, from their checkpoints
+    ``cache/*/checkpoint.pt``: the iteration, the last two history entries and the monitor list (read on the CPU);
+    ``checkpoint_error`` for a checkpoint being replaced at this moment (the next reading gets it)."""
+    import torch
+
+    entry: dict[str, Any] = {}
+    for ckpt in Path(run).glob("cache/*/checkpoint.pt"):
+        try:
+            state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        except Exception as exc:  # noqa: BLE001 - any partial read; reported, read again later
+            entry["checkpoint_error"] = repr(exc)
+            continue
+        entry.update(iteration=state["iteration"], history=state["history"][-2:], monitor=state.get("monitor", []))
+    return entry
+
+
 def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     if not rows:
         write_text_atomic(path, "")

@@ -22,13 +22,7 @@ out=${2:?OUT_DIR}
 budget=${3:-470}
 work=${TMPDIR:-/tmp}/gpu_c3dpo
 mkdir -p "$out" "$work"
-export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
-py=$(command -v python3 || command -v python)
-t_start=$(date +%s)
-
-nvidia-smi -L 2>/dev/null
-"$py" -c "import torch, numpy, scipy, sklearn, h5py; print('torch', torch.__version__, 'numpy', numpy.__version__,
-          'gpu', torch.cuda.is_available() and torch.cuda.get_device_name(0))" || exit 1
+source "$(dirname "$0")/gpu_common.sh"
 
 for i in 1 2 3; do
   "$py" -m benchmarks.studies.speed_c3dpo --batch 1024 --repeats 40 --warmup 5 --device "${DEVICE:-cuda}" \
@@ -59,31 +53,20 @@ collect() {
   "$py" - "$work" "$out/summary.json" <<'EOF'
 import json, sys
 from pathlib import Path
-import torch
+from benchmarks.common import checkpoint_progress, write_json
 work, dest = Path(sys.argv[1]), Path(sys.argv[2])
 summary = {"schedule": json.loads((work / "schedule.json").read_text())}
 for inp in ("gt-ortho", "gt-persp", "sh"):
     run = work / f"run-{inp}"
-    entry = {}
-    table = run / "table1.json"
-    if table.exists():
-        entry["table1"] = json.loads(table.read_text())
-    for ckpt in run.glob("cache/*/checkpoint.pt"):
-        try:
-            state = torch.load(ckpt, map_location="cpu", weights_only=False)
-        except Exception as exc:  # being replaced at this moment: the next pass reads it
-            entry["checkpoint_error"] = repr(exc)
-            continue
-        entry.update(iteration=state["iteration"], monitor=state.get("monitor", []),
-                     history=state["history"][-3:])
+    entry = checkpoint_progress(run)
+    if (run / "table1.json").exists():
+        entry["table1"] = json.loads((run / "table1.json").read_text())
     summary[inp] = entry
 def progress(k, v):
     last = f", test {v['monitor'][-1]['test_mpjpe_mm']:.1f} mm" if v.get("monitor") else ""
     return f"{k}: {v.get('iteration', 0)} it{last}"
 print("  ".join(progress(k, v) for k, v in summary.items() if k != "schedule"))
-tmp = dest.with_name(".summary.tmp")
-tmp.write_text(json.dumps(summary, indent=1, default=str))
-tmp.replace(dest)
+write_json(dest, summary)
 EOF
 }
 
@@ -94,11 +77,6 @@ for inp in gt-ortho gt-persp sh; do
     --no-progress \
     --out "$work/run-$inp" > "$out/$inp.log" 2>&1 &
 done
-while [ -n "$(jobs -rp)" ]; do
-  sleep 30
-  echo "$(( $(date +%s) - t_start )) s: $(collect)"
-done
-wait
-collect
+watch_jobs
 for inp in gt-ortho gt-persp sh; do echo "== $inp"; tail -n 6 "$out/$inp.log"; done
 echo "total $(( $(date +%s) - t_start )) s"

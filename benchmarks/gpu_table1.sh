@@ -19,13 +19,7 @@ shift 4
 [ $# -ge 1 ] || { echo "expected at least one INPUT:ROW, for example 'gt-ortho:GT 3D'" >&2; exit 2; }
 work=${TMPDIR:-/tmp}/gpu_table1
 mkdir -p "$out" "$work"
-export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
-py=$(command -v python3 || command -v python)
-t_start=$(date +%s)
-
-nvidia-smi -L 2>/dev/null
-"$py" -c "import torch, numpy; print('torch', torch.__version__, 'numpy', numpy.__version__,
-          'gpu', torch.cuda.is_available() and torch.cuda.get_device_name(0))" || exit 1
+source "$(dirname "$0")/gpu_common.sh"
 
 jobs_each=${JOBS:-$(( $(nproc) / $# ))}
 [ "$jobs_each" -ge 1 ] || jobs_each=1
@@ -45,39 +39,24 @@ collect() {
   "$py" - "$work" "$out/summary.json" "$iterations" <<'EOF'
 import json, sys
 from pathlib import Path
-import torch
+from benchmarks.common import checkpoint_progress, write_json
 work, dest, iterations = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
 summary = {"iterations": iterations, "runs": []}
 for spec in sorted(work.glob("run*.spec"), key=lambda p: int(p.stem[3:])):
     inp, row = spec.read_text().rstrip("\n").split("\t")
     run = work / spec.stem
-    entry = {"run": spec.stem, "input": inp, "row": row}
-    table = run / "table1.json"
-    if table.exists():
-        entry["table1"] = json.loads(table.read_text())
-    for ckpt in run.glob("cache/*/checkpoint.pt"):
-        try:
-            state = torch.load(ckpt, map_location="cpu", weights_only=False)
-        except Exception as exc:  # being replaced at this moment: the next pass reads it
-            entry["checkpoint_error"] = repr(exc)
-            continue
-        entry.update(iteration=state["iteration"], history=state["history"][-2:])
+    entry = {"run": spec.stem, "input": inp, "row": row, **checkpoint_progress(run)}
+    if (run / "table1.json").exists():
+        entry["table1"] = json.loads((run / "table1.json").read_text())
     summary["runs"].append(entry)
 def progress(e):
     return f"{e['row']} ({e['input']}): " + ("done" if "table1" in e else f"{e.get('iteration', 0)} it")
 print("; ".join(progress(e) for e in summary["runs"]))
-tmp = dest.with_name(".summary.tmp")
-tmp.write_text(json.dumps(summary, indent=1, default=str))
-tmp.replace(dest)
+write_json(dest, summary)
 EOF
 }
 
-while [ -n "$(jobs -rp)" ]; do
-  sleep 30
-  echo "$(( $(date +%s) - t_start )) s: $(collect)"
-done
-wait
-collect
+watch_jobs
 for spec in "$work"/run*.spec; do
   run=${spec%.spec}
   n=$(basename "$run")

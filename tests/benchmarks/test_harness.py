@@ -411,3 +411,17 @@ def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     assert error == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
     assert c3dpo_fit.main([str(tmp_path / "none.pt"), "--root", str(tmp_path)]) == 2
     assert "no such model file" in capsys.readouterr().err
+
+
+def test_checkpoint_progress_reads_where_a_training_got_to(tmp_path):
+    import torch
+
+    from benchmarks.common import checkpoint_progress
+
+    assert checkpoint_progress(tmp_path) == {}  # nothing trained yet
+    (tmp_path / "cache" / "PRN-FCN-1").mkdir(parents=True)
+    history = [{"iteration": i, "loss": 1.0 / i} for i in (100, 200, 300)]
+    torch.save({"iteration": 300, "history": history}, tmp_path / "cache" / "PRN-FCN-1" / "checkpoint.pt")
+    assert checkpoint_progress(tmp_path) == {"iteration": 300, "history": history[-2:], "monitor": []}
+    (tmp_path / "cache" / "PRN-FCN-1" / "checkpoint.pt").write_bytes(b"partial")  # being replaced
+    assert "checkpoint_error" in checkpoint_progress(tmp_path)
