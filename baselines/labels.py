@@ -244,7 +244,7 @@ def signed_volumes(shapes: np.ndarray, tuples: np.ndarray) -> np.ndarray:
     x = shapes - shapes.mean(axis=1, keepdims=True)
     x = x / np.maximum(np.linalg.norm(x, axis=(1, 2), keepdims=True), 1e-300)
     a, b, c = (x[:, tuples[:, j]] - x[:, tuples[:, 0]] for j in (1, 2, 3))  # (F, T, 3) each
-    # the triple product a . (b x c), written out: a batched LAPACK det is about 10 times slower on 3 x 3
+    # the triple product a . (b x c), written out: a batched LAPACK det is several times slower on 3 x 3
     return (a[..., 0] * (b[..., 1] * c[..., 2] - b[..., 2] * c[..., 1])
             - a[..., 1] * (b[..., 0] * c[..., 2] - b[..., 2] * c[..., 0])
             + a[..., 2] * (b[..., 0] * c[..., 1] - b[..., 1] * c[..., 0]))
