@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from nrsfm.device import pick_device
+from nrsfm.device import indices_to, pick_device
 from nrsfm.errors import ValidationError
 from nrsfm.procrustes import rotation_exp
 from prn.train import atomic_save
@@ -283,10 +283,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     for it in range(start, config.iterations):
         for g in opt.param_groups:
             g["lr"] = config.lr_at(it)
-        idx = torch.from_numpy(rng.integers(0, len(inputs), config.batch))
-        if device.type == "cuda":  # from pinned memory without waiting for the queued kernels
-            idx = idx.pin_memory()
-        idx = idx.to(device, non_blocking=True)
+        idx = indices_to(rng.integers(0, len(inputs), config.batch), device)
         w, v = w_all[idx], v_all[idx]
         loss_rep, loss_can = training_losses(model, w, v)
         loss = loss_rep + loss_can

@@ -32,3 +32,15 @@ def pick_device(name: str = "auto"):
         raise ValidationError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}")
     return device
 
+
+
+def indices_to(indices, device):
+    """`(B,)` minibatch indices (a numpy array) as a tensor on ``device``; to a GPU from pinned memory without
+    waiting for the work already queued there."""
+    import numpy as np
+    import torch
+
+    idx = torch.from_numpy(np.ascontiguousarray(indices))
+    if device.type != "cuda":
+        return idx
+    return idx.pin_memory().to(device, non_blocking=True)

@@ -30,7 +30,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from nrsfm.device import pick_device
+from nrsfm.device import indices_to, pick_device
 from nrsfm.errors import NRSfMError, ValidationError
 from prn.data import TrainingSet
 from prn.loss import PRLossParts, pr_loss
@@ -187,14 +187,6 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
                       stop_after=stop_after, objective=objective)
 
 
-def _to_device(indices: np.ndarray, device: torch.device) -> torch.Tensor:
-    """Minibatch indices on ``device``; to a GPU from pinned memory, without waiting for the queued work."""
-    idx = torch.from_numpy(np.ascontiguousarray(indices))
-    if device.type != "cuda":
-        return idx
-    return idx.pin_memory().to(device, non_blocking=True)
-
-
 def _point_groups(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, k: int):
     """Split the points of `(N, P, 3)` shapes, `(N, P, 2)` targets and `(N, P)` weights at random into ``k``
     groups of ``P // k`` points, stacked along the frame axis point-group-major: `(k N, P // k, ...)`, so that every
@@ -288,10 +280,10 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         logged = (it + 1) % log_every == 0 or it == start
         at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == end
         if objective is not None:
-            idx = _to_device(objective.sample(rng), device)
+            idx = indices_to(objective.sample(rng), device)
             loss = objective.loss(forward(idx, xw_all[idx]), idx)
         else:
-            idx = _to_device(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap), device)
+            idx = indices_to(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap), device)
             xw, yw = xw_all[idx], yw_all[idx]
             if config.missing_points > 0:
                 keep = (torch.rand(len(idx), yw.shape[1], device=device) >= config.missing_points).to(yw.dtype)
