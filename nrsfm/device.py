@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from nrsfm.errors import ValidationError
 
 
@@ -33,11 +35,9 @@ def pick_device(name: str = "auto"):
     return device
 
 
-
 def indices_to(indices, device):
     """`(B,)` minibatch indices (a numpy array) as a tensor on ``device``; to a GPU from pinned memory without
     waiting for the work already queued there."""
-    import numpy as np
     import torch
 
     idx = torch.from_numpy(np.ascontiguousarray(indices))
