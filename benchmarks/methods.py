@@ -24,6 +24,15 @@ def _network(split: Split, ctx: RunContext) -> str:
     return ctx.network
 
 
+def cache_config(config) -> dict:
+    """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but ``missing_in_loss`` only where it is not
+    the default (so that models cached before the option existed stay valid)."""
+    out = dataclasses.asdict(config)
+    if config.missing_in_loss:
+        del out["missing_in_loss"]
+    return out
+
+
 def _predict(model, data, split: Split) -> list[np.ndarray]:
     from prn.train import predict, predict_images
 
@@ -40,8 +49,9 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
     data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling,
                               images=split.train_images if network != "fcn" else None)
     config = scaled_schedule(ctx.iterations, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                             missing_points=ctx.missing_points, point_groups=ctx.point_groups, network=network)
-    cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
+                             missing_points=ctx.missing_points, missing_in_loss=ctx.missing_in_loss,
+                             point_groups=ctx.point_groups, network=network)
+    cache = ctx.cache_dir(name, {"config": cache_config(config), "data": split.tag,
                                  "input": split.input_type, "frames": data.description})
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:
@@ -87,8 +97,8 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     network = _network(split, ctx)
     images = split.train_images if network != "fcn" else None
     config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                             network=network)
-    cache = ctx.cache_dir(name, {"config": dataclasses.asdict(config), "data": split.tag,
+                             missing_points=ctx.missing_points, network=network)
+    cache = ctx.cache_dir(name, {"config": cache_config(config), "data": split.tag,
                                  "input": split.input_type, "targets": key})
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:

@@ -51,6 +51,10 @@ class TrainConfig:
     (supplementary Table 1): in every training sample each point goes missing
     with that probability, set to 0 in the input and given weight 0 in the
     data term (the same points, as inputs and outputs correspond one to one).
+    With ``missing_in_loss=False`` they go missing from the input only and the
+    data term keeps every point's 2D, as the paper's Stacked Hourglass
+    networks read detections and are trained against ground-truth 2D. Under
+    another ``objective`` (a supervised 3D loss) they leave the input only.
 
     ``point_groups`` > 1 is the paper's recipe for dense shapes (SURREAL, 6,890
     points): every iteration the points are split at random into that many
@@ -78,6 +82,7 @@ class TrainConfig:
     checkpoint_every: int = 2000
     device: str = "auto"
     missing_points: float = 0.0
+    missing_in_loss: bool = True
     point_groups: int = 1
     network: str = "fcn"
     pretrained: bool = True
@@ -281,13 +286,17 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == end
         if objective is not None:
             idx = indices_to(objective.sample(rng), device)
-            loss = objective.loss(forward(idx, xw_all[idx]), idx)
+            xw = xw_all[idx]
+            if config.missing_points > 0 and config.network == "fcn":  # the objective keeps every point's target
+                xw = xw * (torch.rand(xw.shape, device=device) >= config.missing_points).to(xw.dtype)
+            loss = objective.loss(forward(idx, xw), idx)
         else:
             idx = indices_to(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap), device)
             xw, yw = xw_all[idx], yw_all[idx]
             if config.missing_points > 0:
                 keep = (torch.rand(len(idx), yw.shape[1], device=device) >= config.missing_points).to(yw.dtype)
-                yw = yw * keep
+                if config.missing_in_loss:
+                    yw = yw * keep
                 if data.input_points is not None and len(data.input_points) == yw.shape[1]:
                     xw = xw * keep
             pred, y = forward(idx, xw), y_all[idx]

@@ -9,8 +9,8 @@ import scipy.io
 
 from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, run_cells
-from benchmarks.studies import auto_k, consensus_weight, empnd_starts, pr_sweep, spm_cameras, spm_shape
-from nrsfm import solve
+from benchmarks.studies import auto_k, consensus_weight, empnd_starts, k_reference, pr_sweep, spm_cameras, spm_shape
+from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
 
@@ -367,6 +367,36 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     assert all(r["status"] == "not run" for r in rank3 if r["missing"] > 0)  # needs complete tracks: said so
     assert "csf2, 20% missing: default within 10% of the best fixed K on" in text
     assert "not run:" in text
+
+
+def test_k_reference_scores_each_rule_on_the_tuning_and_validation_sets(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    monkeypatch.setattr(defaults, "N_FRAMES", 30)
+    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:1])
+    monkeypatch.setattr(defaults, "FACES", ())
+    _tiny_cmu_file(tmp_path, lowrank_sequence(30, 12, 2, seed=3, noise=0.01))
+    out = tmp_path / "k"
+    args = ["--root", str(tmp_path / "data"), "--k-max", "2", "--missing", "0,0.2", "--out", str(out), "--no-progress"]
+    assert k_reference.main(args) == 0
+    text = capsys.readouterr().out
+    assert ("| reference | tolerance | tuning (0% missing) | validation (0% missing) | validation (20% missing) |"
+            in text)
+    data = json.loads((out / "k_reference.json").read_text())
+    assert [(r["sequence"], r["missing"]) for r in data["rows"]] == [
+        ("tiny", 0.0), ("human-S1-walking-turn30", 0.0), ("human-S1-walking-turn30", 0.2)]
+    for r in data["rows"]:
+        assert sorted(r["e3d"]) == ["1", "2"] and sorted(r["distance"]) == sorted(k_reference.REFERENCES)
+    tiny = load_sequence(tmp_path / "data" / "nrsfm" / "tiny.mat")
+    assert data["rows"][0]["e3d"]["2"] == pytest.approx(e3d(solve(tiny, "csf2", K=2).points_3d, tiny.points_3d))
+    assert len(data["summary"]) == len(k_reference.REFERENCES) * len(k_reference.TOLERANCES) * 3
+    # the rule: the largest K within the tolerance of the least distance
+    assert k_reference.chosen_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.05) == "2"
+    assert k_reference.chosen_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.0) == "1"
+    fake = [{"e3d": {"1": 1.0, "2": 2.0}, "distance": {"empnd": {"1": 0.1, "2": 0.2}}},
+            {"e3d": {"1": 1.0, "2": 2.0}, "distance": {"empnd": {"1": 0.3, "2": 0.2}}}]
+    assert k_reference.score(fake, "empnd", 0.0) == (1, 2, 2.0)
+    assert k_reference.main(args[:4] + ["--missing", "1.5"]) == 2
+    assert "--missing: expected fractions in [0, 1)" in capsys.readouterr().err
 
 
 def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys, monkeypatch):

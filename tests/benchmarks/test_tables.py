@@ -30,11 +30,29 @@ def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, cap
     assert lo < avg[0.2] < hi and avg[0.2] == pytest.approx(0.8 * parts[0.2]["visible"] + 0.2 * parts[0.2]["missing"],
                                                              rel=0.05)
     assert "| PRN-FCN, missing joints | – |" in text
+    assert parts[0.0]["visible_alone"] == pytest.approx(avg[0.0])  # nothing missing: the same frame as the MPJPE
     caches = [t["cache"] for per in data["meta"]["timings"].values() for t in per.values()]
     assert len(set(caches)) == 2  # a model per ratio
     assert (out / "table_s1.png").exists() and (out / "table_s1.csv").exists()
     assert table_s1.main(["--ratios", "0,1.5", "--out", str(out)]) == 2
     assert "--ratios: expected fractions in [0, 1)" in capsys.readouterr().err
+
+
+def test_visible_alone_ignores_the_missing_joints():
+    from nrsfm.metrics import mpjpe_prn_per_joint
+
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(6, 17, 3)) * 100
+    pred = gt + rng.normal(size=gt.shape) * 5
+    pred[:3, :, 2] *= -1  # reflected frames: the z sign is chosen per frame
+    vis = np.ones((6, 17), bool)
+    np.testing.assert_allclose(table_s1._visible_alone(pred, gt, vis), mpjpe_prn_per_joint(pred, gt))
+    vis[:, :4] = False
+    bad = pred.copy()
+    bad[:, :4] += 1000.0  # wild missing joints move neither the centring nor the z sign of the visible ones
+    expected = table_s1._visible_alone(pred[:, 4:], gt[:, 4:], vis[:, 4:])
+    np.testing.assert_allclose(table_s1._visible_alone(bad, gt, vis)[:, 4:], expected)
+    assert (table_s1._visible_alone(bad, gt, vis)[:, 4:] < mpjpe_prn_per_joint(bad, gt)[:, 4:]).all()
 
 
 def test_missing_split_marks_the_ratio_of_test_entries_missing():

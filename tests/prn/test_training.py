@@ -161,10 +161,41 @@ def test_random_and_consecutive_sampling():
         con.sample_groups(np.random.default_rng(0), 1, 31)
 
 
-def test_missing_points_training_runs(small_set):
-    res = train(small_set, TrainConfig(iterations=5, width=32, group_size=8, groups=2, missing_points=0.2),
-                progress=False)
+@pytest.mark.parametrize("in_loss", [True, False])
+def test_missing_points_leave_the_input_and_optionally_the_data_term(small_set, monkeypatch, in_loss):
+    import prn.train
+
+    seen = {"x": [], "y": []}
+    forward, loss = PRNFCN.forward, prn.train.pr_loss
+
+    def spy_forward(self, x, w=None):
+        seen["x"].append(w.detach().clone())
+        return forward(self, x, w)
+
+    def spy_loss(pred, y, yw, **kw):
+        seen["y"].append(yw.detach().clone())
+        return loss(pred, y, yw, **kw)
+
+    monkeypatch.setattr(PRNFCN, "forward", spy_forward)
+    monkeypatch.setattr(prn.train, "pr_loss", spy_loss)
+    res = train(small_set, TrainConfig(iterations=5, width=32, group_size=8, groups=2, missing_points=0.3,
+                                       missing_in_loss=in_loss), progress=False)
     assert np.isfinite(res.history[-1]["loss"])
+    xw, yw = torch.cat(seen["x"]), torch.cat(seen["y"])
+    assert 0.2 < (xw == 0).float().mean().item() < 0.4  # the input loses about 30% of its points
+    if in_loss:
+        torch.testing.assert_close(yw, xw)  # the same points weigh 0 in the data term
+    else:
+        assert (yw == 1).all()  # the data term keeps every point's 2D
+    if in_loss:  # a supervised 3D objective: the points leave the input, the targets keep every point
+        from baselines.supervised import train_supervised
+
+        seqs = human_sequences(("S1",), ("walking",), n_frames=40, takes=1)
+        seen["x"].clear()
+        train_supervised(seqs, [s.points_3d for s in seqs], TrainConfig(iterations=5, width=16, group_size=8,
+                                                                        groups=2, missing_points=0.3), None,
+                         progress=False)
+        assert 0.2 < (torch.cat(seen["x"]) == 0).float().mean().item() < 0.4
 
 
 def test_training_leaves_denormals_enabled(small_set):
