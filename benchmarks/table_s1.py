@@ -57,12 +57,12 @@ def by_visibility(preds: list[np.ndarray], split: Split) -> dict[str, float | No
     from nrsfm.metrics import mpjpe_prn_per_joint
     from prn.data import denormalize
 
-    errs, alone = [], []
+    errs, vis, alone = [], [], []
     for p, s, t in zip(preds, split.test_inputs, split.test_truth):
         pred, gt = denormalize(p, t.points_3d), t.points_3d
         errs.append(mpjpe_prn_per_joint(pred, gt))
-        alone.append(_visible_alone(pred, gt, s.weights > 0))
-    vis = [s.weights > 0 for s in split.test_inputs]
+        vis.append(s.weights > 0)
+        alone.append(_visible_alone(pred, gt, vis[-1]))
     e, v, a = np.concatenate(errs), np.concatenate(vis), np.concatenate(alone)
     return {"visible": float(e[v].mean()) if v.any() else None, "missing": float(e[~v].mean()) if (~v).any() else None,
             "visible_alone": float(a[v].mean()) if v.any() else None}

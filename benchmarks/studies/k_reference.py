@@ -70,15 +70,11 @@ def run_one(job: str, tuning: bool, missing: float, k_max: int) -> dict:
             "reference_e3d": {n: e3d(r, seq.points_3d) for n, r in refs.items()}}
 
 
-def chosen_k(distance: dict[str, float], tolerance: float) -> str:
-    """The agreement rule on ``{K: distance}``: the largest K within ``1 + tolerance`` of the least distance."""
-    least = min(distance.values())
-    return max((k for k, d in distance.items() if d <= (1 + tolerance) * least), key=int)
-
-
 def score(results: list[dict], reference: str, tolerance: float) -> tuple[int, int, float]:
     """(sequences within 10% of the best fixed K, sequences, worst ratio) of one rule over ``results``."""
-    ratios = [r["e3d"][chosen_k(r["distance"][reference], tolerance)] / min(r["e3d"].values()) for r in results]
+    from nrsfm.solvers.kselect import agreeing_k
+
+    ratios = [r["e3d"][agreeing_k(r["distance"][reference], tolerance)] / min(r["e3d"].values()) for r in results]
     return sum(x <= 1.1 for x in ratios), len(ratios), max(ratios)
 
 

@@ -81,6 +81,13 @@ def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction
         return None
 
 
+def agreeing_k(distance: dict[Any, float], tolerance: float = TOLERANCE) -> Any:
+    """Step 4 of the rule: the largest K of ``{K: distance to the reference}`` whose distance is within
+    ``1 + tolerance`` of the least (the keys compare as integers)."""
+    least = min(distance.values())
+    return max((k for k, d in distance.items() if d <= (1 + tolerance) * least), key=int)
+
+
 def _keep(ks: list[int], recs: list[Reconstruction | None],
           reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
     from nrsfm.metrics import e3d
@@ -92,9 +99,7 @@ def _keep(ks: list[int], recs: list[Reconstruction | None],
     finite = [k for k in solved if np.isfinite(dist[k])]
     if not finite:
         return recs[ks.index(solved[0])], dist
-    least = min(dist[k] for k in finite)
-    best = max(k for k in finite if dist[k] <= (1 + TOLERANCE) * least)
-    return recs[ks.index(best)], dist
+    return recs[ks.index(agreeing_k({k: dist[k] for k in finite}))], dist
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],

@@ -13,6 +13,7 @@ from benchmarks.studies import auto_k, consensus_weight, empnd_starts, k_referen
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
+from nrsfm.solvers.kselect import agreeing_k
 
 
 def _tiny_cmu_file(tmp_path, seq):
@@ -390,8 +391,8 @@ def test_k_reference_scores_each_rule_on_the_tuning_and_validation_sets(tmp_path
     assert data["rows"][0]["e3d"]["2"] == pytest.approx(e3d(solve(tiny, "csf2", K=2).points_3d, tiny.points_3d))
     assert len(data["summary"]) == len(k_reference.REFERENCES) * len(k_reference.TOLERANCES) * 3
     # the rule: the largest K within the tolerance of the least distance
-    assert k_reference.chosen_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.05) == "2"
-    assert k_reference.chosen_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.0) == "1"
+    assert agreeing_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.05) == "2"
+    assert agreeing_k({"1": 1.0, "2": 1.04, "3": 1.2}, 0.0) == "1"
     fake = [{"e3d": {"1": 1.0, "2": 2.0}, "distance": {"empnd": {"1": 0.1, "2": 0.2}}},
             {"e3d": {"1": 1.0, "2": 2.0}, "distance": {"empnd": {"1": 0.3, "2": 0.2}}}]
     assert k_reference.score(fake, "empnd", 0.0) == (1, 2, 2.0)
