@@ -151,8 +151,11 @@ def pseudo_huber(sq: torch.Tensor, scale: float) -> torch.Tensor:
 def random_rotations(n: int, max_angle: float, axes: tuple[float, float, float], *, like: torch.Tensor
                      ) -> torch.Tensor:
     """`(n, 3, 3)` rotations about random axes (masked by ``axes``) by angles uniform in ``[0, max_angle]``."""
-    axis = torch.randn(n, 3, dtype=like.dtype, device=like.device) * torch.tensor(axes, dtype=like.dtype,
-                                                                                  device=like.device)
+    mask = torch.zeros(3, dtype=like.dtype, device=like.device)  # filled on the device: a CUDA graph can hold it
+    for i, a in enumerate(axes):
+        if a:
+            mask[i] = a
+    axis = torch.randn(n, 3, dtype=like.dtype, device=like.device) * mask
     axis = axis / axis.norm(dim=1, keepdim=True).clamp_min(1e-12)
     angle = torch.rand(n, dtype=like.dtype, device=like.device) * max_angle
     return rotation_exp(axis * angle[:, None])
@@ -176,7 +179,8 @@ class C3DPO(nn.Module):
         return self.basis(coefficients).view(-1, 3, self.n_points)
 
     def _trunk(self, trunk: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bf16"):
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bf16",
+                            cache_enabled=False):  # no cast cache: CUDA graphs capture this region
             return trunk(x).float()
 
     def _phi(self, w: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -245,18 +249,98 @@ def training_losses(model: C3DPO, w: torch.Tensor, v: torch.Tensor) -> tuple[tor
     return model.reprojection_loss(pred["camera"], w, v), model.canonicalisation_loss(pred["canonical"])
 
 
+class TrainStep:
+    """C3DPO's training iteration on rows of `(N, 2, P)` centred keypoints ``w_all`` and `(N, P)` visibilities
+    ``v_all``: ``step(idx, lr)`` takes `(B,)` row indices (numpy) and the learning rate, runs the forward pass, the
+    backward pass and the optimiser's step, and returns the reprojection and canonicalisation losses (device
+    tensors, not synchronised).
+
+    With ``cuda_graph`` the iteration is captured as a CUDA graph, once per learning rate, and replayed: one launch
+    in place of the thousand-odd kernel launches that bound a 1024-wide network's iteration on a GPU. The replay
+    does the same arithmetic on the same rows; its random rotations come from another part of the CUDA
+    generator's stream. Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm
+    statistics and the momentum put back as they were), as CUDA graphs need. SGD only (Adam keeps its step count
+    on the host).
+    """
+
+    def __init__(self, model: C3DPO, opt: torch.optim.Optimizer, w_all: torch.Tensor, v_all: torch.Tensor,
+                 batch: int, cuda_graph: bool = False) -> None:
+        if cuda_graph and (w_all.device.type != "cuda" or not isinstance(opt, torch.optim.SGD)):
+            raise ValidationError(f"C3DPO: a CUDA graph needs a CUDA device and SGD, got {w_all.device.type} and "
+                                  f"{type(opt).__name__}; train without cuda_graph")
+        self.model, self.opt, self.w_all, self.v_all, self.cuda_graph = model, opt, w_all, v_all, cuda_graph
+        self.idx = torch.zeros(batch, dtype=torch.long, device=w_all.device)  # the graph's input
+        self.graph, self.graph_lr, self.out = None, None, None
+
+    def eager(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One iteration on `(B,)` device indices, launched op by op."""
+        loss_rep, loss_can = training_losses(self.model, self.w_all[idx], self.v_all[idx])
+        self.opt.zero_grad(set_to_none=True)
+        (loss_rep + loss_can).backward()
+        self.opt.step()
+        return loss_rep, loss_can
+
+    def __call__(self, idx: np.ndarray, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        rows = indices_to(idx, self.w_all.device)
+        if not self.cuda_graph:
+            return self.eager(rows)
+        self.idx.copy_(rows)
+        if self.graph is None or lr != self.graph_lr:
+            self._capture(lr)
+        self.graph.replay()
+        return self.out
+
+    def _capture(self, lr: float) -> None:
+        self.graph = self.out = None  # the previous graph's memory goes back first
+        stream = torch.cuda.Stream(self.idx.device)
+        stream.wait_stream(torch.cuda.current_stream(self.idx.device))
+        with torch.cuda.stream(stream):
+            warm_up(self, 3)
+        torch.cuda.current_stream(self.idx.device).wait_stream(stream)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            self.out = self.eager(self.idx)
+        self.graph, self.graph_lr = graph, lr
+
+
+def warm_up(step: TrainStep, n: int) -> None:
+    """Run ``n`` iterations of ``step`` on its ``idx`` rows, then put the model's parameters and batch-norm
+    statistics and the optimiser's momentum back as they were (in place, so that their memory stays where a CUDA
+    graph reads it); momentum that did not exist before is zero, which gives SGD's first step exactly."""
+    model, opt = step.model, step.opt
+    saved = {k: t.detach().clone() for k, t in model.state_dict().items()}
+    params = [p for group in opt.param_groups for p in group["params"]]
+    momentum = [opt.state[p].get("momentum_buffer") if p in opt.state else None for p in params]
+    momentum = [None if b is None else b.clone() for b in momentum]
+    for _ in range(n):
+        step.eager(step.idx)
+    with torch.no_grad():
+        for k, t in model.state_dict().items():
+            t.copy_(saved[k])
+        for p, b in zip(params, momentum):
+            buf = opt.state[p].get("momentum_buffer") if p in opt.state else None
+            if buf is not None:
+                buf.copy_(b) if b is not None else buf.zero_()
+
+
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
                 *, resume: bool = True, progress: bool = True,
-                monitor: Callable[[C3DPO], dict] | None = None) -> tuple[C3DPO, dict]:
+                monitor: Callable[[C3DPO], dict] | None = None,
+                cuda_graph: bool | None = None) -> tuple[C3DPO, dict]:
     """Train C3DPO on `(N, P, 2)` normalised keypoints and `(N, P)` visibilities; checkpoints every
     ``checkpoint_every`` iterations to ``out_dir/checkpoint.pt`` (resumed when ``resume``), the final model to
     ``out_dir/model.pt``. Returns the model (eval mode) and a record of the run.
 
     ``monitor``, when given, is called with the model (in eval mode) at every checkpoint; its dict goes into the
-    record's ``monitor`` list with the iteration (for example a held-out error along training)."""
+    record's ``monitor`` list with the iteration (for example a held-out error along training). ``cuda_graph``:
+    replay each iteration as a CUDA graph (:class:`TrainStep`); by default on a CUDA device with SGD."""
     from tqdm.auto import tqdm
 
     device = pick_device(config.device)
+    if cuda_graph is None:
+        cuda_graph = device.type == "cuda" and config.optimizer == "sgd"
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     model = C3DPO(inputs.shape[1], config).to(device)
@@ -278,18 +362,12 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
     v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
     model.train()
+    step = TrainStep(model, opt, w_all, v_all, config.batch, cuda_graph)
     t0 = time.perf_counter()
     bar = tqdm(total=config.iterations, initial=start, desc="C3DPO", disable=not progress, mininterval=2.0)
     for it in range(start, config.iterations):
-        for g in opt.param_groups:
-            g["lr"] = config.lr_at(it)
-        idx = indices_to(rng.integers(0, len(inputs), config.batch), device)
-        w, v = w_all[idx], v_all[idx]
-        loss_rep, loss_can = training_losses(model, w, v)
+        loss_rep, loss_can = step(rng.integers(0, len(inputs), config.batch), config.lr_at(it))
         loss = loss_rep + loss_can
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
         logged = (it + 1) % 100 == 0 or it == start
         at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations
         if (logged or at_checkpoint) and not torch.isfinite(loss):  # the loop's only host synchronisations
@@ -309,7 +387,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
-              "history": history, "monitor": monitored}
+              "cuda_graph": cuda_graph, "history": history, "monitor": monitored}
     if out is not None:
         atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
               out / "model.pt")

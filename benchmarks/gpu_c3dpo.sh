@@ -1,53 +1,59 @@
 #!/usr/bin/env bash
-# C3DPO's rows of Table 1 (GT-ortho, GT-persp, SH) trained side by side on one GPU, in one fixed time budget.
+# C3DPO's rows of Table 1 (GT-ortho, GT-persp, SH) trained on one GPU as CUDA graphs, in one fixed time budget.
 #
 #   bash benchmarks/gpu_c3dpo.sh DATA_ROOT OUT_DIR [TRAIN_SECONDS]
 #
 # DATA_ROOT holds h36m/ (as --root of benchmarks.table1). TRAIN_SECONDS (default 470) is the training time the
 # schedule must fit in. The script
-#   1. times C3DPO training iterations (batch 1024, fp32 and bf16 trunks) with three timings running at once, as
-#      the three trainings will (benchmarks.studies.speed_c3dpo);
-#   2. takes the faster precision and the authors' 109,800 iterations, or as many as fit TRAIN_SECONDS at the
-#      timed speed with the evaluations along training (the lr drops move with the schedule, as
-#      --c3dpo-iterations does);
-#   3. trains and evaluates C3DPO on the three inputs at once (benchmarks.table1 --methods C3DPO --c3dpo-monitor),
+#   1. times a C3DPO training iteration (batch 1024) alone, in float32 and with bfloat16 trunks, launched op by op
+#      and replayed as a CUDA graph (benchmarks.studies.speed_c3dpo);
+#   2. at PRECISION (default fp32, the authors'), as CUDA graphs (op by op where a capture fails), takes the inputs of INPUTS (default
+#      "gt-ortho gt-persp sh", in that order) whose trainings fit the authors' 109,800 iterations into TRAIN_SECONDS
+#      side by side (their GPU time adds up), at least the first; where that one alone does not fit, as many
+#      iterations as do (the lr drops move with the schedule, as --c3dpo-iterations does);
+#   3. trains and evaluates C3DPO on those inputs at once (benchmarks.table1 --methods C3DPO --c3dpo-monitor),
 #      while a collector copies the test error along training from the checkpoints into OUT_DIR/summary.json,
 #      so that a run cut short still reports where it got to.
-# DEVICE (default cuda) names the torch device. OUT_DIR gets one log per input and summary.json (the chosen
-# schedule, the timings, each input's table row, its own-protocol numbers and the monitored curve); the script's
-# own output says how far each training got every 30 s.
+# DEVICE (default cuda) names the torch device. OUT_DIR gets one log per input, the timings (speed_c3dpo.json) and
+# summary.json (the chosen schedule, each input's table row, its own-protocol numbers and the monitored curve);
+# the script's own output says how far each training got every 30 s.
 set -u
 root=${1:?DATA_ROOT}
 out=${2:?OUT_DIR}
 budget=${3:-470}
+precision=${PRECISION:-fp32}
 work=${TMPDIR:-/tmp}/gpu_c3dpo
 mkdir -p "$out" "$work"
 source "$(dirname "$0")/gpu_common.sh"
 
-for i in 1 2 3; do
+eager=""
+if ! "$py" -m benchmarks.studies.speed_c3dpo --batch 1024 --repeats 40 --warmup 5 --device "${DEVICE:-cuda}" \
+     --out "$work/speed"; then
+  echo "CUDA graphs failed: training op by op" >&2
+  eager=--c3dpo-eager
   "$py" -m benchmarks.studies.speed_c3dpo --batch 1024 --repeats 40 --warmup 5 --device "${DEVICE:-cuda}" \
-    --out "$work/speed$i" > "$work/speed$i.log" 2>&1 &
-done
-wait
-cat "$work"/speed*.log
+    --eager-only --out "$work/speed" || exit 1
+fi
+cp "$work/speed/speed_c3dpo.json" "$out/"
 
-read -r iterations precision < <("$py" - "$work" "$budget" <<'EOF'
-import json, statistics, sys
+read -r iterations chosen < <("$py" - "$work" "$budget" "$precision" ${INPUTS:-gt-ortho gt-persp sh} <<'EOF'
+import json, sys
 from pathlib import Path
 from baselines.c3dpo import PAPER_ITERATIONS
-work, budget = Path(sys.argv[1]), float(sys.argv[2])
-runs = [json.loads(p.read_text())["results"] for p in sorted(work.glob("speed*/speed_c3dpo.json"))]
-times = {prec: statistics.median(r["iteration_s"] for rows in runs for r in rows if r["precision"] == prec)
-         for prec in ("fp32", "bf16")}
-prec = min(times, key=times.get)
-# 0.75: room for the monitor's evaluations and the data loading, which the timing leaves out
-iterations = max(100, min(PAPER_ITERATIONS, int(0.75 * budget / times[prec]) // 100 * 100))
-json.dump({"budget_s": budget, "iteration_s_three_at_once": times, "precision": prec, "iterations": iterations,
-           "paper_iterations": PAPER_ITERATIONS}, open(work / "schedule.json", "w"), indent=2)
-print(iterations, prec)
+work, budget, precision, inputs = Path(sys.argv[1]), float(sys.argv[2]), sys.argv[3], sys.argv[4:]
+rows = json.loads((work / "speed" / "speed_c3dpo.json").read_text())["results"]
+t = min(r["iteration_s"] for r in rows if r["precision"] == precision)  # the CUDA graph's, where it ran
+# 0.85: room for the monitor's evaluations and the data loading, which the timing leaves out
+n = max(1, min(len(inputs), int(0.85 * budget / (PAPER_ITERATIONS * t))))
+iterations = max(100, min(PAPER_ITERATIONS, int(0.85 * budget / (n * t)) // 100 * 100))
+json.dump({"budget_s": budget, "iteration_s_alone": t, "precision": precision, "inputs": inputs[:n],
+           "iterations": iterations, "paper_iterations": PAPER_ITERATIONS}, open(work / "schedule.json", "w"),
+          indent=2)
+print(iterations, ",".join(inputs[:n]))
 EOF
 )
-echo "schedule: $iterations iterations, $precision trunks"
+[ -n "${chosen:-}" ] || exit 1
+echo "schedule: $iterations iterations, $precision trunks, inputs $chosen"
 
 collect() {
   "$py" - "$work" "$out/summary.json" <<'EOF'
@@ -56,7 +62,7 @@ from pathlib import Path
 from benchmarks.common import checkpoint_progress, write_json
 work, dest = Path(sys.argv[1]), Path(sys.argv[2])
 summary = {"schedule": json.loads((work / "schedule.json").read_text())}
-for inp in ("gt-ortho", "gt-persp", "sh"):
+for inp in summary["schedule"]["inputs"]:
     run = work / f"run-{inp}"
     entry = checkpoint_progress(run)
     if (run / "table1.json").exists():
@@ -71,12 +77,11 @@ EOF
 }
 
 left=$((budget + 75 - ($(date +%s) - t_start)))  # 75 s beyond the training for loading and the final evaluation
-for inp in gt-ortho gt-persp sh; do
+for inp in ${chosen//,/ }; do
   timeout "$left" "$py" -m benchmarks.table1 --root "$root" --input "$inp" --methods C3DPO \
-    --c3dpo-iterations "$iterations" --c3dpo-precision "$precision" --c3dpo-monitor --device "${DEVICE:-cuda}" \
-    --no-progress \
-    --out "$work/run-$inp" > "$out/$inp.log" 2>&1 &
+    --c3dpo-iterations "$iterations" --c3dpo-precision "$precision" --c3dpo-monitor $eager \
+    --device "${DEVICE:-cuda}" --no-progress --out "$work/run-$inp" > "$out/$inp.log" 2>&1 &
 done
 watch_jobs
-for inp in gt-ortho gt-persp sh; do echo "== $inp"; tail -n 6 "$out/$inp.log"; done
+for inp in ${chosen//,/ }; do echo "== $inp"; tail -n 6 "$out/$inp.log"; done
 echo "total $(( $(date +%s) - t_start )) s"

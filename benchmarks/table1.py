@@ -200,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--c3dpo-monitor", action="store_true",
                    help="also evaluate C3DPO on the test split at every checkpoint, into its train.json (a "
                         "diagnostic of the error along training; nothing is chosen with it)")
+    p.add_argument("--c3dpo-eager", action="store_true",
+                   help="on a GPU, launch C3DPO's training iterations op by op instead of replaying each as a CUDA "
+                        "graph (the same arithmetic, fewer kernel launches)")
     p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
                    help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
                         "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
@@ -237,7 +240,7 @@ def _run(args: argparse.Namespace) -> int:
                      c3dpo_batch=args.c3dpo_batch, c3dpo_iterations=args.c3dpo_iterations,
                      c3dpo_rescale=args.c3dpo_rescale, c3dpo_inputs=args.c3dpo_inputs,
                      c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor, c3dpo_lr=args.c3dpo_lr,
-                     c3dpo_precision=args.c3dpo_precision,
+                     c3dpo_precision=args.c3dpo_precision, c3dpo_cuda_graph=not args.c3dpo_eager,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from baselines.c3dpo import C3DPO, C3DPOConfig, predict_c3dpo, pseudo_huber, random_rotations, train_c3dpo
+from baselines.c3dpo import (C3DPO, C3DPOConfig, TrainStep, make_optimizer, predict_c3dpo, pseudo_huber,
+                             random_rotations, train_c3dpo, warm_up)
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.procrustes import rotation_exp
 
@@ -136,6 +137,60 @@ def test_bf16_runs_the_trunks_in_bfloat16_and_keeps_the_outputs_and_weights_floa
     assert all(p.dtype == torch.float32 for p in bf16.parameters())
     with pytest.raises(Exception, match="precision"):
         C3DPOConfig(precision="fp16")
+
+
+def _step(config, n=64, seed=0):
+    torch.manual_seed(seed)
+    model = C3DPO(12, config).train()
+    w, v = torch.randn(n, 2, 12) * 0.3, torch.ones(n, 12)
+    v[::5, 2] = 0.0
+    return TrainStep(model, make_optimizer(model, config), w, v, config.batch)
+
+
+@pytest.mark.parametrize("trained_before", [0, 2])
+def test_the_warm_up_before_a_cuda_graph_capture_leaves_the_training_where_it_was(trained_before):
+    # a capture warms up on real iterations, then must put parameters, batch-norm statistics and momentum back:
+    # the next iteration is then exactly the one that would have come without the warm-up
+    config = dataclasses.replace(SMALL, batch=16)
+    plain, warmed = _step(config), _step(config)
+    rows = np.random.default_rng(0).integers(0, 64, (3, 16))
+    for r in rows[:trained_before]:
+        for s in (plain, warmed):
+            torch.manual_seed(7)
+            s(r, 0.01)
+    warmed.idx.copy_(torch.from_numpy(rows[2]))
+    warm_up(warmed, 3)
+    for s in (plain, warmed):
+        torch.manual_seed(1)
+        s(rows[2], 0.01)
+    for (name, a), b in zip(plain.model.state_dict().items(), warmed.model.state_dict().values()):
+        assert torch.equal(a, b), name
+    for p, q in zip(plain.model.parameters(), warmed.model.parameters()):
+        assert torch.equal(plain.opt.state[p]["momentum_buffer"], warmed.opt.state[q]["momentum_buffer"])
+
+
+def test_a_cuda_graph_is_refused_without_a_gpu_or_with_adam():
+    config = dataclasses.replace(SMALL, batch=16)
+    s = _step(config)
+    with pytest.raises(ValueError, match="CUDA graph needs a CUDA device and SGD"):
+        TrainStep(s.model, s.opt, s.w_all, s.v_all, 16, cuda_graph=True)
+    with pytest.raises(ValueError, match="CUDA graph"):
+        train_c3dpo(np.zeros((20, 12, 2)), np.ones((20, 12)), config, None, progress=False, cuda_graph=True)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_graph_training_follows_op_by_op_training_through_a_learning_rate_drop(tmp_path):
+    seq = lowrank_sequence(400, 12, 2, seed=0)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    x = x / np.linalg.norm(x.reshape(len(x), -1), axis=1)[:, None, None]
+    config = C3DPOConfig(basis=3, width=64, n_layers=1, iterations=300, batch=64, lr=1e-2, device="cuda",
+                         checkpoint_every=150)
+    records = [train_c3dpo(x, np.ones(x.shape[:2]), config, tmp_path / str(g), progress=False, cuda_graph=g)[1]
+               for g in (False, True)]
+    assert records[1]["cuda_graph"] and not records[0]["cuda_graph"]
+    first, last = [[r["history"][i]["reprojection"] for r in records] for i in (0, -1)]
+    assert last[1] < 0.7 * first[1]  # the replays train
+    assert abs(last[1] - last[0]) < 0.25 * last[0]  # as far as launching op by op does (another random stream)
 
 
 def test_the_speed_study_times_both_precisions_and_refuses_a_bad_batch(tmp_path, capsys):
