@@ -154,7 +154,7 @@ def random_rotations(n: int, max_angle: float, axes: tuple[float, float, float],
     mask = torch.zeros(3, dtype=like.dtype, device=like.device)  # filled on the device: a CUDA graph can hold it
     for i, a in enumerate(axes):
         if a:
-            mask[i] = a
+            mask.narrow(0, i, 1).fill_(float(a))
     axis = torch.randn(n, 3, dtype=like.dtype, device=like.device) * mask
     axis = axis / axis.norm(dim=1, keepdim=True).clamp_min(1e-12)
     angle = torch.rand(n, dtype=like.dtype, device=like.device) * max_angle
