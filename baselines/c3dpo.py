@@ -257,9 +257,9 @@ class TrainStep:
 
     With ``cuda_graph`` the iteration is captured as a CUDA graph, once per learning rate, and replayed: one launch
     in place of the many small kernel launches that dominate an op-by-op iteration on a GPU. The replay does the
-    same arithmetic on the same rows; its random rotations come from another part of the CUDA generator's stream. Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm
-    statistics and the momentum put back as they were), as CUDA graphs need. SGD only (Adam keeps its step count
-    on the host).
+    same arithmetic on the same rows; its random rotations come from another part of the CUDA generator's stream.
+    Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm statistics and the
+    momentum put back as they were), as CUDA graphs need. SGD only (Adam keeps its step count on the host).
     """
 
     def __init__(self, model: C3DPO, opt: torch.optim.Optimizer, w_all: torch.Tensor, v_all: torch.Tensor,
