@@ -7,13 +7,15 @@
 # schedule must fit in. The script
 #   1. times a C3DPO training iteration (batch 1024) alone, in float32 and with bfloat16 trunks, launched op by op
 #      and replayed as a CUDA graph (benchmarks.studies.speed_c3dpo);
-#   2. at PRECISION (default fp32, the authors'), as CUDA graphs (op by op where a capture fails), takes the inputs of INPUTS (default
-#      "gt-ortho gt-persp sh", in that order) whose trainings fit the authors' 109,800 iterations into TRAIN_SECONDS
-#      side by side (their GPU time adds up), at least the first; where that one alone does not fit, as many
-#      iterations as do (the lr drops move with the schedule, as --c3dpo-iterations does);
+#   2. at PRECISION (default fp32, the authors'), as CUDA graphs (op by op where a capture fails), takes the
+#      inputs of INPUTS (default "gt-ortho gt-persp sh", in that order) whose trainings fit the authors' 109,800
+#      iterations into TRAIN_SECONDS side by side (their GPU time adds up), at least the first; where that one
+#      alone does not fit, as many iterations as do (the lr drops move with the schedule, as --c3dpo-iterations);
 #   3. trains and evaluates C3DPO on those inputs at once (benchmarks.table1 --methods C3DPO --c3dpo-monitor),
 #      while a collector copies the test error along training from the checkpoints into OUT_DIR/summary.json,
 #      so that a run cut short still reports where it got to.
+# ITERATIONS fixes the schedule instead (every input of INPUTS; the lr drops at 2/3 and 8/9 of it): a run cut short
+# by the budget resumes from its last checkpoint when the script runs again on the same machine, same settings.
 # DEVICE (default cuda) names the torch device. OUT_DIR gets one log per input, the timings (speed_c3dpo.json) and
 # summary.json (the chosen schedule, each input's table row, its own-protocol numbers and the monitored curve);
 # the script's own output says how far each training got every 30 s.
@@ -37,7 +39,7 @@ fi
 cp "$work/speed/speed_c3dpo.json" "$out/"
 
 read -r iterations chosen < <("$py" - "$work" "$budget" "$precision" ${INPUTS:-gt-ortho gt-persp sh} <<'EOF'
-import json, sys
+import json, os, sys
 from pathlib import Path
 from baselines.c3dpo import PAPER_ITERATIONS
 work, budget, precision, inputs = Path(sys.argv[1]), float(sys.argv[2]), sys.argv[3], sys.argv[4:]
@@ -46,6 +48,8 @@ t = min(r["iteration_s"] for r in rows if r["precision"] == precision)  # the CU
 # 0.85: room for the monitor's evaluations and the data loading, which the timing leaves out
 n = max(1, min(len(inputs), int(0.85 * budget / (PAPER_ITERATIONS * t))))
 iterations = max(100, min(PAPER_ITERATIONS, int(0.85 * budget / (n * t)) // 100 * 100))
+if os.environ.get("ITERATIONS"):  # a fixed schedule: every input of INPUTS, resumed from its checkpoint if any
+    n, iterations = len(inputs), int(os.environ["ITERATIONS"])
 json.dump({"budget_s": budget, "iteration_s_alone": t, "precision": precision, "inputs": inputs[:n],
            "iterations": iterations, "paper_iterations": PAPER_ITERATIONS}, open(work / "schedule.json", "w"),
           indent=2)
