@@ -422,6 +422,28 @@ def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys,
     assert monitor[-1]["test_mpjpe_mm"] == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
 
 
+@pytest.mark.parametrize("graph, expected", [(True, None), (False, False)])
+def test_c3dpo_hands_the_cuda_graph_choice_to_its_training(tmp_path, monkeypatch, graph, expected):
+    """By default the training decides (CUDA graphs on a GPU); ``--c3dpo-eager`` asks for op-by-op launches."""
+    import baselines.c3dpo as c3dpo_module
+    from benchmarks.methods import c3dpo
+    from benchmarks.registry import RunContext, Split
+    from nrsfm.datasets.synthetic import human_sequences
+
+    seqs = human_sequences(["S1"], n_frames=20, takes=1, seed=0, motions=("walking",))
+    seen, real = [], c3dpo_module.train_c3dpo
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["cuda_graph"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(c3dpo_module, "train_c3dpo", spy)
+    ctx = RunContext(out_dir=tmp_path, iterations=4, progress=False, c3dpo_batch=16, c3dpo_cuda_graph=graph,
+                     device="cpu")
+    c3dpo(Split(seqs, seqs, seqs, seqs, "gt-ortho", tag="tiny"), ctx)
+    assert seen == [expected]
+
+
 def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     """The study's error of a trained C3DPO on a set of sequences is the harness's test error on them; a missing
     model file is a clear error."""
