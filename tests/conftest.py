@@ -5,6 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+if os.environ.get("PYTEST_XDIST_WORKER"):  # one worker per core: one BLAS, OpenMP and torch thread each, as the
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # benchmarks' parallel jobs
+        os.environ.setdefault(_var, "1")
+
 import numpy as np
 import pytest
 from hypothesis import settings
@@ -12,6 +16,15 @@ from hypothesis import settings
 # derandomize: CI runs the same examples every time (a failure reproduces; no flaky landings)
 settings.register_profile("nrsfm", deadline=None, max_examples=40, derandomize=True)
 settings.load_profile("nrsfm")
+
+
+def pytest_configure(config):
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # pools already started before the variables above took effect
+        import torch
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+        torch.set_num_threads(1)
 
 
 def _data_dir(name: str) -> Path | None:
