@@ -54,14 +54,15 @@ def test_label_pipeline_resumes_and_records_failures(walk, tmp_path, monkeypatch
         return real(*args)
 
     monkeypatch.setattr(labels, "_solve_cut", counted)
+    rank = labels.LABEL_DEFAULTS["csf2"]  # the pipeline's one-solve K rule (the default solves every K)
     with pytest.raises(KeyboardInterrupt):
-        solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)
+        solve_cuts(cuts, "csf2", rank, out_dir=tmp_path, dataset="walk", progress=False)
     calls.clear()
-    shapes, failed, reused = solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)
+    shapes, failed, reused = solve_cuts(cuts, "csf2", rank, out_dir=tmp_path, dataset="walk", progress=False)
     assert reused == 6 and len(calls) == 14  # only the unfinished cuts are solved
     assert not failed and all(np.isfinite(s).all() for s in shapes)
     calls.clear()
-    assert solve_cuts(cuts, "csf2", out_dir=tmp_path, dataset="walk", progress=False)[2] == 20 and not calls
+    assert solve_cuts(cuts, "csf2", rank, out_dir=tmp_path, dataset="walk", progress=False)[2] == 20 and not calls
     # a solver that refuses the input: recorded, never replaced
     bad, failed, _ = solve_cuts(cuts[:2], "csf2", {"K": 7}, out_dir=tmp_path, dataset="walk", progress=False)
     assert len(failed) == 2 and "K = 7" in next(iter(failed.values())) and np.isnan(bad[0]).all()
