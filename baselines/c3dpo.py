@@ -260,20 +260,27 @@ class TrainStep:
     same arithmetic on the same rows; its random rotations come from another part of the CUDA generator's stream.
     Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm statistics and the
     momentum put back as they were), as CUDA graphs need. SGD only (Adam keeps its step count on the host).
+
+    With ``compile`` the forward and backward passes are compiled by ``torch.compile`` (Inductor fuses the
+    batch norms, ReLUs, casts and losses into fewer kernels; the first iterations pay the compilation). Its random
+    numbers are drawn by the same operators as op by op (``fallback_random``), so that a CUDA graph replays them
+    afresh and a seed gives the same rotations either way.
     """
 
     def __init__(self, model: C3DPO, opt: torch.optim.Optimizer, w_all: torch.Tensor, v_all: torch.Tensor,
-                 batch: int, cuda_graph: bool = False) -> None:
+                 batch: int, cuda_graph: bool = False, compile: bool = False) -> None:
         if cuda_graph and (w_all.device.type != "cuda" or not isinstance(opt, torch.optim.SGD)):
             raise ValidationError(f"C3DPO: a CUDA graph needs a CUDA device and SGD, got {w_all.device.type} and "
                                   f"{type(opt).__name__}; train without cuda_graph")
         self.model, self.opt, self.w_all, self.v_all, self.cuda_graph = model, opt, w_all, v_all, cuda_graph
         self.idx = torch.zeros(batch, dtype=torch.long, device=w_all.device)  # the graph's input
         self.graph, self.graph_lr, self.out = None, None, None
+        self.losses = (torch.compile(training_losses, options={"fallback_random": True}) if compile
+                       else training_losses)
 
     def eager(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One iteration on `(B,)` device indices, launched op by op."""
-        loss_rep, loss_can = training_losses(self.model, self.w_all[idx], self.v_all[idx])
+        """One iteration on `(B,)` device indices, launched op by op (compiled kernels with ``compile``)."""
+        loss_rep, loss_can = self.losses(self.model, self.w_all[idx], self.v_all[idx])
         self.opt.zero_grad(set_to_none=True)
         (loss_rep + loss_can).backward()
         self.opt.step()
@@ -327,14 +334,15 @@ def warm_up(step: TrainStep, n: int) -> None:
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
                 *, resume: bool = True, progress: bool = True,
                 monitor: Callable[[C3DPO], dict] | None = None,
-                cuda_graph: bool | None = None) -> tuple[C3DPO, dict]:
+                cuda_graph: bool | None = None, compile: bool = False) -> tuple[C3DPO, dict]:
     """Train C3DPO on `(N, P, 2)` normalised keypoints and `(N, P)` visibilities; checkpoints every
     ``checkpoint_every`` iterations to ``out_dir/checkpoint.pt`` (resumed when ``resume``), the final model to
     ``out_dir/model.pt``. Returns the model (eval mode) and a record of the run.
 
     ``monitor``, when given, is called with the model (in eval mode) at every checkpoint; its dict goes into the
     record's ``monitor`` list with the iteration (for example a held-out error along training). ``cuda_graph``:
-    replay each iteration as a CUDA graph (:class:`TrainStep`); by default on a CUDA device with SGD."""
+    replay each iteration as a CUDA graph (:class:`TrainStep`); by default on a CUDA device with SGD. ``compile``:
+    compile the forward and backward passes (:class:`TrainStep`)."""
     from tqdm.auto import tqdm
 
     device = pick_device(config.device)
@@ -361,7 +369,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
     v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
     model.train()
-    step = TrainStep(model, opt, w_all, v_all, config.batch, cuda_graph)
+    step = TrainStep(model, opt, w_all, v_all, config.batch, cuda_graph, compile)
     t0 = time.perf_counter()
     bar = tqdm(total=config.iterations, initial=start, desc="C3DPO", disable=not progress, mininterval=2.0)
     for it in range(start, config.iterations):
@@ -386,7 +394,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
-              "cuda_graph": cuda_graph, "history": history, "monitor": monitored}
+              "cuda_graph": cuda_graph, "compile": compile, "history": history, "monitor": monitored}
     if out is not None:
         atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
               out / "model.pt")

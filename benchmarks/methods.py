@@ -245,7 +245,7 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     else:
         model, info = train_c3dpo(inputs, weights, config, cache, resume=not ctx.retrain, progress=ctx.progress,
                                   monitor=test_error if ctx.c3dpo_monitor else None,
-                                  cuda_graph=None if ctx.c3dpo_cuda_graph else False)
+                                  cuda_graph=None if ctx.c3dpo_cuda_graph else False, compile=ctx.c3dpo_compile)
         ctx.timings[key] = {"cached": False, "train_seconds": info["seconds"], "iterations": iterations,
                             "cache": str(cache)}
     if info.get("monitor"):

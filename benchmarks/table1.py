@@ -203,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--c3dpo-eager", action="store_true",
                    help="on a GPU, launch C3DPO's training iterations op by op instead of replaying each as a CUDA "
                         "graph (the same arithmetic, fewer kernel launches)")
+    p.add_argument("--c3dpo-compile", action="store_true",
+                   help="compile C3DPO's forward and backward passes with torch.compile (fewer, fused kernels: "
+                        "faster on a GPU once compiled; the compilation takes a minute or more)")
     p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
                    help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
                         "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
@@ -241,6 +244,7 @@ def _run(args: argparse.Namespace) -> int:
                      c3dpo_rescale=args.c3dpo_rescale, c3dpo_inputs=args.c3dpo_inputs,
                      c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor, c3dpo_lr=args.c3dpo_lr,
                      c3dpo_precision=args.c3dpo_precision, c3dpo_cuda_graph=not args.c3dpo_eager,
+                     c3dpo_compile=args.c3dpo_compile,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -314,7 +318,8 @@ def _run(args: argparse.Namespace) -> int:
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
                                "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs,
-                               "lr": args.c3dpo_lr, "precision": args.c3dpo_precision},
+                               "lr": args.c3dpo_lr, "precision": args.c3dpo_precision,
+                               "cuda_graph": not args.c3dpo_eager, "compile": args.c3dpo_compile},
                         timings=ctx.timings, total_seconds=total)
     write_csv(out / "table1.csv", rows_csv)
     write_json(out / "table1.json", {"meta": meta, "results": [
