@@ -29,7 +29,7 @@ from benchmarks.common import markdown_table, run_metadata, write_json
 def measure(precision: str, device: str = "cpu", batch: int = 256, repeats: int = 20, warmup: int = 3,
             seed: int = 0, cuda_graph: bool = False, compile: bool = False) -> dict:
     """Median seconds of one training iteration of batch ``batch`` at ``precision`` (as a CUDA graph when
-    ``cuda_graph``, compiled when ``compile``); ``compile_s``: the warm-up's seconds."""
+    ``cuda_graph``, compiled when ``compile``); ``warmup_s``: the warm-up's seconds (the compilation)."""
     import numpy as np
 
     from baselines.c3dpo import C3DPO, C3DPOConfig, TrainStep, make_optimizer
