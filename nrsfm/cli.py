@@ -6,7 +6,7 @@
                 [--progress auto|always|never] [--jobs N] [--weak-perspective]
     nrsfm methods [NAME]
     nrsfm synth KIND OUT.npz [--frames F] [--points P] [--basis K] [--noise S] [--missing M] [--seed N]
-    nrsfm demo [--out DIR]
+    nrsfm demo [--out DIR] [--methods A,B] [--jobs N]
 
 Bad input ends with one line on stderr and exit status 2 (no traceback).
 Existing output files are never overwritten without ``--force``.
@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -95,6 +96,9 @@ def _build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="run every solver on the embedded synthetic data and write plots")
     s.add_argument("--out", default=None, help="output folder (default: a new nrsfm-demo-<time> folder)")
     s.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered)")
+    s.add_argument("--jobs", type=int, default=None,
+                   help="processes solving the sequence x solver cells side by side, each with --threads threads "
+                        "(default: the cores this process may use)")
     return p
 
 
@@ -349,17 +353,54 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    """Every registered solver on the embedded synthetic sequences; a Markdown table and plots."""
-    from nrsfm.datasets import synthetic
+def _usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _demo_cell(seq, name: str, out: Path, reference=None) -> dict[str, Any]:
+    """One cell of ``nrsfm demo``: ``name`` on ``seq``, its metrics and plot (``{"error": message}`` where the
+    solver declined the sequence). ``reference``: EM-PND's shapes of ``seq``, for the automatic K
+    (:func:`nrsfm.solvers.kselect.remember_reference`). Runs in a worker process where ``--jobs`` > 1."""
     from nrsfm.errors import SolverError
-    from nrsfm.metrics import e3d_per_frame, classic_metrics
-    from nrsfm.plotting import plot_error_curve, plot_reconstruction
+    from nrsfm.metrics import classic_metrics, e3d_per_frame
+    from nrsfm.plotting import plot_reconstruction
+    from nrsfm.solvers import get_solver
+    from nrsfm.solvers.kselect import remember_reference
+
+    if reference is not None:
+        remember_reference(seq, reference)
+    spec = get_solver(name)
+    try:
+        rec = spec.solve(seq, spec.params())
+    except SolverError as exc:
+        return {"error": str(exc)}
+    m = classic_metrics(rec.points_3d, seq.points_3d)
+    stem = f"{seq.name.replace('/', '_')}_{name}"
+    plot_reconstruction(seq, rec.points_3d, out / f"{stem}.png", title=f"{seq.name}: {name}")
+    return {"e3d": m["e3d"], "ne": m["normalized_error"], "runtime": rec.runtime_s, "shapes": rec.points_3d,
+            "curve": e3d_per_frame(rec.points_3d, seq.points_3d)}
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    """Every registered solver on the embedded synthetic sequences; a Markdown table and plots.
+
+    The cells run in ``--jobs`` processes (one BLAS/torch pool of ``--threads`` each); the table keeps their
+    order. EM-PND runs first, on every sequence: CSF2 and SPM choose their K by agreement with its
+    reconstruction, which the workers then reuse instead of solving it again."""
+    from joblib import Parallel, delayed
+
+    from nrsfm.datasets import synthetic
+    from nrsfm.plotting import plot_error_curve
     from nrsfm.solvers import available_solvers, get_solver
+    from nrsfm.solvers.kselect import REFERENCE_SOLVER
 
     names = available_solvers() if args.methods is None else [m.strip() for m in args.methods.split(",")]
     for name in names:
         get_solver(name)  # unknown names fail before any work
+    jobs = args.jobs if args.jobs is not None else _usable_cores()
+    if jobs < 1:
+        raise ValueError(f"--jobs: expected a number of processes >= 1, got {jobs}")
     out = Path(args.out or time.strftime("nrsfm-demo-%Y%m%d-%H%M%S"))
     if out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out}: the folder exists and is not empty; choose another --out")
@@ -370,28 +411,38 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         synthetic.human_sequences(("S9",), ("walking",), (1,), n_frames=200)[0],
         synthetic.face_sequences(1, 200)[0],
     ]
-    print(f"nrsfm demo: {len(sequences)} synthetic sequences x {len(names)} solvers -> {out}/")
-    print()
-    print("| sequence | frames x points | method | e3D | normalised error | time (s) |")
-    print("|---|---|---|---|---|---|")
     for seq in sequences:
         seq.save(out / f"{seq.name.replace('/', '_')}.npz")
-        curves = {}
-        for name in names:
-            spec = get_solver(name)
-            try:
-                rec = spec.solve(seq, spec.params())
-            except SolverError as exc:
-                print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | not run: {exc} | | |")
-                continue
-            m = classic_metrics(rec.points_3d, seq.points_3d)
-            curves[name] = e3d_per_frame(rec.points_3d, seq.points_3d)
-            print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | {m['e3d']:.4g} | "
-                  f"{m['normalized_error']:.4g} | {rec.runtime_s:.3f} |")
-            stem = f"{seq.name.replace('/', '_')}_{name}"
-            plot_reconstruction(seq, rec.points_3d, out / f"{stem}.png", title=f"{seq.name}: {name}")
-        if curves:
-            plot_error_curve(curves, out / f"{seq.name.replace('/', '_')}_e3d.png", ylabel="e3D per frame",
+    print(f"nrsfm demo: {len(sequences)} synthetic sequences x {len(names)} solvers -> {out}/ ({jobs} "
+          f"process{'es' if jobs > 1 else ''})")
+    print()
+
+    def run(cells):
+        return Parallel(n_jobs=max(1, min(jobs, len(cells))), backend="loky", return_as="generator",
+                        inner_max_num_threads=args.threads or None)(delayed(_demo_cell)(*c) for c in cells)
+
+    first: dict[str, dict[str, Any]] = {}
+    if REFERENCE_SOLVER in names:
+        print(f"{REFERENCE_SOLVER} first, on every sequence (the automatic K of csf2 and spm compares with it) ...",
+              flush=True)
+        first = dict(zip([s.name for s in sequences], run([(s, REFERENCE_SOLVER, out) for s in sequences])))
+    print("| sequence | frames x points | method | e3D | normalised error | time (s) |")
+    print("|---|---|---|---|---|---|")
+    cells = [(seq, name) for seq in sequences for name in names]
+    rest = iter(run([(seq, name, out, first.get(seq.name, {}).get("shapes")) for seq, name in cells
+                     if name != REFERENCE_SOLVER]))
+    curves: dict[str, dict[str, Any]] = {}
+    for seq, name in cells:
+        cell = first[seq.name] if name == REFERENCE_SOLVER else next(rest)
+        if "error" in cell:
+            print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | not run: {cell['error']} | | |",
+                  flush=True)
+        else:
+            curves.setdefault(seq.name, {})[name] = cell["curve"]
+            print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | {cell['e3d']:.4g} | {cell['ne']:.4g} | "
+                  f"{cell['runtime']:.3f} |", flush=True)
+        if name == names[-1] and curves.get(seq.name):
+            plot_error_curve(curves[seq.name], out / f"{seq.name.replace('/', '_')}_e3d.png", ylabel="e3D per frame",
                              title=seq.name)
     print()
     print(f"plots and the input sequences are in {out}/ (try: nrsfm solve {out}/rigid.npz --method rank3)")

@@ -187,6 +187,17 @@ def test_methods_and_demo(tmp_path, capsys):
     assert code == 0, err
     assert "| rigid | 200 x 30 | rank3 |" in out
     assert any(p.suffix == ".png" for p in (tmp_path / "demo").iterdir())
+    # worker processes, EM-PND first and its shapes handed to CSF2's automatic K: the same table
+    code, par, err = _run(capsys, "demo", "--out", str(tmp_path / "par"), "--methods", "rank3,emppca", "--jobs", "2")
+    assert code == 0, err
+    code, seq, err = _run(capsys, "demo", "--out", str(tmp_path / "seq"), "--methods", "rank3,emppca", "--jobs", "1")
+    assert code == 0, err
+
+    def rows(text):  # the table without the time column
+        return [r.split(" | ")[:5] for r in text.splitlines() if r.startswith("| ") and ("rank3" in r or "emppca" in r)]
+
+    assert rows(par) == rows(seq) and len(rows(par)) == 8 and "(2 processes)" in par
+    _one_line_error(*_run(capsys, "demo", "--jobs", "0")[::2], "--jobs: expected a number of processes >= 1")
     _one_line_error(*_run(capsys, "demo", "--out", str(tmp_path / "demo"))[::2], "not empty")
     _one_line_error(*_run(capsys, "demo", "--methods", "nope")[::2], "method: expected one of")
 

@@ -48,6 +48,9 @@ def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
     return range(1, max(1, min(k_max, (min(2 * n_frames, n_points) - 1) // 3)) + 1)
 
 
+#: The solver whose reconstruction at its defaults is the rule's reference (step 1).
+REFERENCE_SOLVER = "empnd"
+
 #: EM-PND's shapes for the last few inputs of this process, by :func:`~nrsfm.solvers.starts.tracks_digest`:
 #: CSF2 and SPM on the same tracks compute the reference once.
 _REFERENCES: OrderedDict[str, np.ndarray] = OrderedDict()
@@ -71,6 +74,19 @@ def _remember(key: str, shapes: np.ndarray) -> None:
     _REFERENCES.move_to_end(key)
     while len(_REFERENCES) > _REFERENCES_KEPT:
         _REFERENCES.popitem(last=False)
+
+
+def remember_reference(seq: Sequence, shapes: np.ndarray) -> None:
+    """Hand the rule :data:`REFERENCE_SOLVER`'s `(F, P, 3)` shapes of ``seq`` at its defaults, solved elsewhere
+    (another process: ``nrsfm demo`` solves EM-PND first and passes its shapes to the workers), so that CSF2 and
+    SPM with ``K = 0`` in this process skip that solve."""
+    from nrsfm.solvers.starts import tracks_digest
+
+    shapes = np.asarray(shapes, dtype=float)
+    if shapes.shape != (seq.n_frames, seq.n_points, 3):
+        raise ValueError(f"remember_reference: expected shapes of shape {(seq.n_frames, seq.n_points, 3)}, got "
+                         f"{shapes.shape}")
+    _remember(tracks_digest(seq), shapes)
 
 
 def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction | None:

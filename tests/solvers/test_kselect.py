@@ -88,6 +88,28 @@ def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch)
     assert len(calls) == 2
 
 
+def test_a_reference_handed_over_is_used_instead_of_solving_it(monkeypatch):
+    from nrsfm.solvers import kselect
+    from nrsfm.solvers.registry import get_solver
+
+    seq = lowrank_sequence(40, 12, 2, seed=7, noise=0.01)
+    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
+    solved = solve(seq, "csf2")
+    shapes = solve(seq, kselect.REFERENCE_SOLVER).points_3d  # what another process would hand over
+
+    def refuse(seq, params):
+        raise AssertionError("the reference was solved again")
+
+    monkeypatch.setattr(get_solver("empnd").solve, "__wrapped__", refuse)
+    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
+    kselect.remember_reference(seq, shapes)
+    handed = solve(seq.replace(name="elsewhere"), "csf2")
+    assert handed.info["K"] == solved.info["K"] and handed.info["agreement"] == pytest.approx(solved.info["agreement"])
+    np.testing.assert_allclose(handed.points_3d, solved.points_3d)
+    with pytest.raises(ValueError, match=r"expected shapes of shape \(40, 12, 3\), got \(40, 11, 3\)"):
+        kselect.remember_reference(seq, shapes[:, :11])
+
+
 def test_the_k_solves_in_worker_processes_give_the_sequential_result():
     from joblib import parallel_config
 
