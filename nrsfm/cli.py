@@ -30,6 +30,9 @@ from pathlib import Path
 from typing import Any
 
 EXIT_BAD_INPUT = 2
+#: ``nrsfm demo``'s default number of processes at most: each holds its own torch and BLAS (up to about 1 GB on
+#: the demo's data), and beyond four the longest cells (EM-PND and the consensus on the face) set the wall time.
+DEMO_MAX_JOBS = 4
 
 
 class _Parser(argparse.ArgumentParser):
@@ -98,7 +101,7 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered)")
     s.add_argument("--jobs", type=int, default=None,
                    help="processes solving the sequence x solver cells side by side, each with --threads threads "
-                        "(default: the cores this process may use)")
+                        f"(default: the cores this process may use, at most {DEMO_MAX_JOBS})")
     return p
 
 
@@ -398,7 +401,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     names = available_solvers() if args.methods is None else [m.strip() for m in args.methods.split(",")]
     for name in names:
         get_solver(name)  # unknown names fail before any work
-    jobs = args.jobs if args.jobs is not None else _usable_cores()
+    jobs = args.jobs if args.jobs is not None else min(DEMO_MAX_JOBS, _usable_cores())
     if jobs < 1:
         raise ValueError(f"--jobs: expected a number of processes >= 1, got {jobs}")
     out = Path(args.out or time.strftime("nrsfm-demo-%Y%m%d-%H%M%S"))
