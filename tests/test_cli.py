@@ -187,7 +187,7 @@ def test_methods_and_demo(tmp_path, capsys):
     assert code == 0, err
     assert "| rigid | 200 x 30 | rank3 |" in out
     assert any(p.suffix == ".png" for p in (tmp_path / "demo").iterdir())
-    # worker processes, EM-PND first and its shapes handed to CSF2's automatic K: the same table
+    # the cells in two worker processes give the table of one process
     code, par, err = _run(capsys, "demo", "--out", str(tmp_path / "par"), "--methods", "rank3,emppca", "--jobs", "2")
     assert code == 0, err
     code, seq, err = _run(capsys, "demo", "--out", str(tmp_path / "seq"), "--methods", "rank3,emppca", "--jobs", "1")
