@@ -101,7 +101,7 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered)")
     s.add_argument("--jobs", type=int, default=None,
                    help="processes solving the sequence x solver cells side by side, each with --threads threads "
-                        f"(default: the cores this process may use, at most {DEMO_MAX_JOBS})")
+                        f"(default: the CPU cores, at most {DEMO_MAX_JOBS})")
     return p
 
 
@@ -356,11 +356,6 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _usable_cores() -> int:
-    """The CPU cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def _demo_cell(seq, name: str, out: Path, reference=None) -> dict[str, Any]:
     """One cell of ``nrsfm demo``: ``name`` on ``seq``, its metrics and plot (``{"error": message}`` where the
     solver declined the sequence). ``reference``: EM-PND's shapes of ``seq``, for the automatic K
@@ -401,7 +396,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     names = available_solvers() if args.methods is None else [m.strip() for m in args.methods.split(",")]
     for name in names:
         get_solver(name)  # unknown names fail before any work
-    jobs = args.jobs if args.jobs is not None else min(DEMO_MAX_JOBS, _usable_cores())
+    jobs = args.jobs if args.jobs is not None else min(DEMO_MAX_JOBS, os.cpu_count() or 1)
     if jobs < 1:
         raise ValueError(f"--jobs: expected a number of processes >= 1, got {jobs}")
     out = Path(args.out or time.strftime("nrsfm-demo-%Y%m%d-%H%M%S"))

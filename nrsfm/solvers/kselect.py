@@ -62,7 +62,7 @@ def _empnd_shapes(seq: Sequence) -> np.ndarray | NRSfMError:
     process hands it back)."""
     from nrsfm.solvers.registry import get_solver
 
-    spec = get_solver("empnd")
+    spec = get_solver(REFERENCE_SOLVER)
     try:
         return spec.solve.__wrapped__(seq, spec.params()).points_3d
     except NRSfMError as exc:
