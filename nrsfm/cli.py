@@ -356,18 +356,19 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _demo_cell(seq, name: str, out: Path, reference=None) -> dict[str, Any]:
+def _demo_cell(seq, name: str, out: Path, known: dict[str, Any] | None = None) -> dict[str, Any]:
     """One cell of ``nrsfm demo``: ``name`` on ``seq``, its metrics and plot (``{"error": message}`` where the
-    solver declined the sequence). ``reference``: EM-PND's shapes of ``seq``, for the automatic K
-    (:func:`nrsfm.solvers.kselect.remember_reference`). Runs in a worker process where ``--jobs`` > 1."""
+    solver declined the sequence). ``known``: reconstructions of ``seq`` by other solvers at their defaults, by
+    name, that ``name`` may reuse (:func:`nrsfm.solvers.starts.remember_solution`). Runs in a worker process where
+    ``--jobs`` > 1."""
     from nrsfm.errors import SolverError
     from nrsfm.metrics import classic_metrics, e3d_per_frame
     from nrsfm.plotting import plot_reconstruction
     from nrsfm.solvers import get_solver
-    from nrsfm.solvers.kselect import remember_reference
+    from nrsfm.solvers.starts import remember_solution
 
-    if reference is not None:
-        remember_reference(seq, reference)
+    for solver, rec in (known or {}).items():
+        remember_solution(seq, solver, rec)
     spec = get_solver(name)
     try:
         rec = spec.solve(seq, spec.params())
@@ -376,7 +377,7 @@ def _demo_cell(seq, name: str, out: Path, reference=None) -> dict[str, Any]:
     m = classic_metrics(rec.points_3d, seq.points_3d)
     stem = f"{seq.name.replace('/', '_')}_{name}"
     plot_reconstruction(seq, rec.points_3d, out / f"{stem}.png", title=f"{seq.name}: {name}")
-    return {"e3d": m["e3d"], "ne": m["normalized_error"], "runtime": rec.runtime_s, "shapes": rec.points_3d,
+    return {"e3d": m["e3d"], "ne": m["normalized_error"], "runtime": rec.runtime_s, "rec": rec,
             "curve": e3d_per_frame(rec.points_3d, seq.points_3d)}
 
 
@@ -384,13 +385,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     """Every registered solver on the embedded synthetic sequences; a Markdown table and plots.
 
     The cells run in ``--jobs`` processes (one BLAS/torch pool of ``--threads`` each); the table keeps their
-    order. EM-PND runs first, on every sequence: CSF2 and SPM choose their K by agreement with its
-    reconstruction, which the workers then reuse instead of solving it again."""
+    order. The solvers whose reconstructions others reuse run first, on every sequence: EM-PND (CSF2 and SPM
+    choose their K by agreement with it) and the consensus's components (EM-PND and PR); the workers of the
+    other cells are handed their reconstructions instead of solving them again."""
     from joblib import Parallel, delayed
 
     from nrsfm.datasets import synthetic
     from nrsfm.plotting import plot_error_curve
     from nrsfm.solvers import available_solvers, get_solver
+    from nrsfm.solvers.consensus import ConsensusParams
     from nrsfm.solvers.kselect import REFERENCE_SOLVER
 
     names = available_solvers() if args.methods is None else [m.strip() for m in args.methods.split(",")]
@@ -419,30 +422,38 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         return Parallel(n_jobs=max(1, min(jobs, len(cells))), backend="loky", return_as="generator",
                         inner_max_num_threads=args.threads or None)(delayed(_demo_cell)(*c) for c in cells)
 
-    first: dict[str, dict[str, Any]] = {}
-    if REFERENCE_SOLVER in names:
-        print(f"{REFERENCE_SOLVER} first, on every sequence (the automatic K of csf2 and spm compares with it) ...",
-              flush=True)
-        first = dict(zip([s.name for s in sequences], run([(s, REFERENCE_SOLVER, out) for s in sequences])))
+    shared = {REFERENCE_SOLVER, *ConsensusParams().parsed()[0]}
+    first = [name for name in names if name in shared] if len(names) > 1 else []
+    done: dict[tuple[str, str], dict[str, Any]] = {}
+    if first:
+        print(f"{', '.join(first)} first, on every sequence (csf2 and spm choose K by agreement with empnd; the "
+              "consensus averages empnd and pr) ...", flush=True)
+        cells = [(seq, name) for seq in sequences for name in first]
+        done.update(zip([(s.name, n) for s, n in cells], run([(s, n, out) for s, n in cells])))
     print("| sequence | frames x points | method | e3D | normalised error | time (s) |")
     print("|---|---|---|---|---|---|")
     cells = [(seq, name) for seq in sequences for name in names]
-    rest = iter(run([(seq, name, out, first.get(seq.name, {}).get("shapes")) for seq, name in cells
-                     if name != REFERENCE_SOLVER]))
+    known = {seq.name: {n: done[seq.name, n]["rec"] for n in first if "rec" in done[seq.name, n]} for seq in sequences}
+    rest = iter(run([(seq, name, out, known[seq.name]) for seq, name in cells if name not in first]))
     curves: dict[str, dict[str, Any]] = {}
+    reused: set[str] = set()
     for seq, name in cells:
-        cell = first[seq.name] if name == REFERENCE_SOLVER else next(rest)
+        cell = done[seq.name, name] if name in first else next(rest)
         if "error" in cell:
             print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | not run: {cell['error']} | | |",
                   flush=True)
         else:
             curves.setdefault(seq.name, {})[name] = cell["curve"]
+            if cell["rec"].info.get("reused"):
+                reused.add(f"{name} ({', '.join(cell['rec'].info['reused'])})")
             print(f"| {seq.name} | {seq.n_frames} x {seq.n_points} | {name} | {cell['e3d']:.4g} | {cell['ne']:.4g} | "
                   f"{cell['runtime']:.3f} |", flush=True)
         if name == names[-1] and curves.get(seq.name):
             plot_error_curve(curves[seq.name], out / f"{seq.name.replace('/', '_')}_e3d.png", ylabel="e3D per frame",
                              title=seq.name)
     print()
+    if reused:
+        print(f"{'; '.join(sorted(reused))}: reused those cells' reconstructions; their time is not counted again")
     print(f"plots and the input sequences are in {out}/ (try: nrsfm solve {out}/rigid.npz --method rank3)")
     return 0
 

@@ -51,6 +51,14 @@ def h36m_dir() -> Path:
     return path
 
 
+@pytest.fixture(autouse=True)
+def _no_remembered_solutions(monkeypatch):
+    """Each test starts with no reconstructions kept from another (:func:`nrsfm.solvers.starts.remember_solution`)."""
+    from nrsfm.solvers import starts
+
+    monkeypatch.setattr(starts, "_SOLUTIONS", type(starts._SOLUTIONS)())
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

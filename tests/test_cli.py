@@ -202,6 +202,21 @@ def test_methods_and_demo(tmp_path, capsys):
     _one_line_error(*_run(capsys, "demo", "--methods", "nope")[::2], "method: expected one of")
 
 
+def test_a_demo_cell_reuses_the_reconstructions_handed_to_it(tmp_path, monkeypatch):
+    from nrsfm import solve
+    from nrsfm.cli import _demo_cell
+    from nrsfm.solvers import starts
+
+    seq = lowrank_sequence(40, 12, 2, seed=2, noise=0.01)
+    alone = _demo_cell(seq, "consensus", tmp_path)
+    monkeypatch.setattr(starts, "_SOLUTIONS", type(starts._SOLUTIONS)())  # a fresh worker process
+    known = {name: solve(seq, name) for name in ("empnd", "pr")}  # the demo's first cells, from other processes
+    handed = _demo_cell(seq, "consensus", tmp_path, known)
+    assert alone["rec"].info["reused"] == [] and handed["rec"].info["reused"] == ["empnd", "pr"]
+    np.testing.assert_allclose(handed["rec"].points_3d, alone["rec"].points_3d)
+    assert handed["e3d"] == pytest.approx(alone["e3d"])
+
+
 def test_console_script_entry_point():
     import subprocess
     import sys

@@ -26,7 +26,7 @@ from nrsfm.geometry import nearest_rotation
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.registry import get_solver, register
-from nrsfm.solvers.starts import shared_starts
+from nrsfm.solvers.starts import remember_solution, remembered_solution, shared_starts
 
 _FLIP = np.array([1.0, 1.0, -1.0])
 
@@ -104,19 +104,30 @@ def average_reconstructions(recs: list[Reconstruction], weights) -> tuple[np.nda
 def solve_consensus(seq: Sequence, params: ConsensusParams) -> Reconstruction:
     """Every method of ``params`` on ``seq`` with its defaults, then :func:`average_reconstructions`. Missing points
     are allowed when every method handles them; a method that refuses the sequence stops the consensus with
-    its own message."""
+    its own message.
+
+    A method whose reconstruction of these tracks this process already has
+    (:func:`~nrsfm.solvers.starts.remembered_solution`: solved by an earlier consensus or automatic K, or handed
+    over by another process) is not solved again; ``info["reused"]`` names those, and the run time then excludes
+    theirs (``info["component_seconds"]`` keeps each method's own). Each method solved here is kept the same way."""
 
     names, weights = params.parsed()
-    recs = []
+    recs, reused = [], []
     with shared_starts():  # EM-PND and PR start from the same CSF2 reconstruction when points are missing
         for name in names:
-            try:
-                recs.append(get_solver(name).solve(seq))
-            except NRSfMError as exc:
-                raise type(exc)(f"consensus: {exc}") from exc
+            rec = remembered_solution(seq, name)
+            if rec is not None:
+                reused.append(name)
+            else:
+                try:
+                    rec = get_solver(name).solve(seq)
+                except NRSfMError as exc:
+                    raise type(exc)(f"consensus: {exc}") from exc
+                remember_solution(seq, name, rec)
+            recs.append(rec)
     shapes, rotations, flipped = average_reconstructions(recs, weights)
     return Reconstruction(points_3d=shapes, rotations=rotations, method="consensus",
                           iterations=sum(r.iterations for r in recs), converged=all(r.converged for r in recs),
                           info={"methods": names, "weights": weights.tolist(), "frames_flipped": flipped,
-                                "component_seconds": [r.runtime_s for r in recs],
+                                "reused": reused, "component_seconds": [r.runtime_s for r in recs],
                                 "component_iterations": [r.iterations for r in recs]})

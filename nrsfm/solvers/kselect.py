@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections import OrderedDict
+import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -51,42 +51,19 @@ def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
 #: The solver whose reconstruction at its defaults is the rule's reference (step 1).
 REFERENCE_SOLVER = "empnd"
 
-#: EM-PND's shapes for the last few inputs of this process, by :func:`~nrsfm.solvers.starts.tracks_digest`:
-#: CSF2 and SPM on the same tracks compute the reference once.
-_REFERENCES: OrderedDict[str, np.ndarray] = OrderedDict()
-_REFERENCES_KEPT = 4
-
-
-def _empnd_shapes(seq: Sequence) -> np.ndarray | NRSfMError:
-    """EM-PND's `(F, P, 3)` shapes at its defaults, or the error that stopped it (returned, so that a worker
-    process hands it back)."""
+def _reference(seq: Sequence) -> Reconstruction | NRSfMError:
+    """:data:`REFERENCE_SOLVER`'s reconstruction at its defaults, timed, or the error that stopped it (returned, so
+    that a worker process hands it back)."""
     from nrsfm.solvers.registry import get_solver
 
     spec = get_solver(REFERENCE_SOLVER)
+    params = spec.params()
+    t0 = time.perf_counter()
     try:
-        return spec.solve.__wrapped__(seq, spec.params()).points_3d
+        rec = spec.solve.__wrapped__(seq, params)
     except NRSfMError as exc:
         return exc
-
-
-def _remember(key: str, shapes: np.ndarray) -> None:
-    _REFERENCES[key] = shapes
-    _REFERENCES.move_to_end(key)
-    while len(_REFERENCES) > _REFERENCES_KEPT:
-        _REFERENCES.popitem(last=False)
-
-
-def remember_reference(seq: Sequence, shapes: np.ndarray) -> None:
-    """Hand the rule :data:`REFERENCE_SOLVER`'s `(F, P, 3)` shapes of ``seq`` at its defaults, solved elsewhere
-    (another process: ``nrsfm demo`` solves EM-PND first and passes its shapes to the workers), so that CSF2 and
-    SPM with ``K = 0`` in this process skip that solve."""
-    from nrsfm.solvers.starts import tracks_digest
-
-    shapes = np.asarray(shapes, dtype=float)
-    if shapes.shape != (seq.n_frames, seq.n_points, 3):
-        raise ValueError(f"remember_reference: expected shapes of shape {(seq.n_frames, seq.n_points, 3)}, got "
-                         f"{shapes.shape}")
-    _remember(tracks_digest(seq), shapes)
+    return dataclasses.replace(rec, runtime_s=time.perf_counter() - t0, params=dataclasses.asdict(params))
 
 
 def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction | None:
@@ -149,24 +126,25 @@ def _solve_fixed(solver: str, seq: Sequence, params: Any, k: int | None = None) 
 def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
     """The registered ``solver`` on ``seq`` with the K among ``ks`` that agrees with EM-PND's reconstruction
     (:func:`agreement_k`), the distances in ``info["agreement"]``. EM-PND runs in the same
-    :class:`joblib.Parallel` batch as the K solves unless its shapes are remembered. Where EM-PND refuses the
-    tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]`` saying why."""
+    :class:`joblib.Parallel` batch as the K solves unless this process has it
+    (:func:`~nrsfm.solvers.starts.remembered_solution`), and is kept for the next solver on the same tracks. Where
+    EM-PND refuses the tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]``
+    saying why."""
     from joblib import Parallel, delayed
 
-    from nrsfm.solvers.starts import tracks_digest
+    from nrsfm.solvers.starts import remember_solution, remembered_solution
 
-    key = tracks_digest(seq)
     solves = [delayed(_attempt)(functools.partial(_solve_fixed, solver, seq, params), k) for k in ks]
-    if key in _REFERENCES:
-        _REFERENCES.move_to_end(key)
-        reference, recs = _REFERENCES[key], Parallel()(solves)
+    reference = remembered_solution(seq, REFERENCE_SOLVER)
+    if reference is not None:
+        recs = Parallel()(solves)
     else:
-        reference, *recs = Parallel()([delayed(_empnd_shapes)(seq), *solves])
+        reference, *recs = Parallel()([delayed(_reference)(seq), *solves])
         if isinstance(reference, NRSfMError):
             rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
             rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {reference})")
             return rec
-        _remember(key, reference)
-    rec, dist = _keep(list(ks), recs, reference)
+        remember_solution(seq, REFERENCE_SOLVER, reference)
+    rec, dist = _keep(list(ks), recs, reference.points_3d)
     rec.info.update(k_rule="agreement", agreement=dist)
     return rec

@@ -14,13 +14,20 @@ when 3 does not divide ``r`` (a basis of deficient rank: rank 5 needs K = 3), at
 A solver that runs others (the consensus: EM-PND and PR) wraps them in :func:`shared_starts`, inside which each
 start and each noise rank is computed once per input and handed out as copies. CSF2 itself is reached through the
 registry, so this module imports no solver.
+
+Whole reconstructions at a solver's defaults are kept too, for the last few inputs of the process
+(:func:`remember_solution`, :func:`remembered_solution`): the automatic K of CSF2 and SPM (EM-PND, its reference)
+and the consensus (its components) solve each once per input, and a solve done in another process (``nrsfm demo``)
+can be handed over.
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import copy
 import hashlib
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -125,6 +132,43 @@ def tracks_digest(seq: Sequence) -> str:
     digest.update(np.ascontiguousarray(seq.weights, dtype=np.float64).tobytes())
     digest.update(f"{seq.points_2d.shape} {seq.projection}".encode())
     return digest.hexdigest()
+
+
+#: Reconstructions at a solver's defaults by (solver, :func:`tracks_digest`), the most recently used last.
+_SOLUTIONS: OrderedDict[tuple[str, str], Reconstruction] = OrderedDict()
+#: How many :data:`_SOLUTIONS` a process keeps.
+SOLUTIONS_KEPT = 8
+
+
+def remember_solution(seq: Sequence, solver: str, rec: Reconstruction) -> None:
+    """Keep ``rec``, the registered ``solver``'s reconstruction of ``seq`` at its default parameters, for the
+    solvers of this process that run ``solver`` at its defaults on the same tracks (:func:`remembered_solution`).
+
+    The automatic K of CSF2 and SPM keeps its reference (EM-PND) this way and the consensus its components; a solve
+    done in another process is handed over the same way (``nrsfm demo`` solves EM-PND and PR first and gives their
+    reconstructions to the workers that run CSF2, SPM and the consensus). A reconstruction at other settings must
+    not be given: nothing here can tell.
+    """
+    get_solver(solver)  # an unknown name raises with the known ones
+    if not isinstance(rec, Reconstruction) or rec.points_3d.shape != (seq.n_frames, seq.n_points, 3):
+        got = rec.points_3d.shape if isinstance(rec, Reconstruction) else type(rec).__name__
+        raise ValueError(f"remember_solution: expected a Reconstruction with shapes of shape "
+                         f"{(seq.n_frames, seq.n_points, 3)} (the sequence's frames and points), got {got}")
+    key = (solver, tracks_digest(seq))
+    _SOLUTIONS[key] = copy.deepcopy(rec)
+    _SOLUTIONS.move_to_end(key)
+    while len(_SOLUTIONS) > SOLUTIONS_KEPT:
+        _SOLUTIONS.popitem(last=False)
+
+
+def remembered_solution(seq: Sequence, solver: str) -> Reconstruction | None:
+    """A copy of the reconstruction :func:`remember_solution` kept for ``solver`` on ``seq``'s tracks (under any
+    name), or None."""
+    key = (solver, tracks_digest(seq))
+    if key not in _SOLUTIONS:
+        return None
+    _SOLUTIONS.move_to_end(key)
+    return copy.deepcopy(_SOLUTIONS[key])
 
 
 def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:

@@ -19,6 +19,29 @@ def test_consensus_recovers_a_noise_free_low_rank_sequence_and_says_what_it_ran(
     assert e3d(solve(missing, "consensus").points_3d, missing.points_3d) < 0.02
 
 
+def test_consensus_reuses_the_components_this_process_has_and_keeps_those_it_solves(monkeypatch):
+    import dataclasses
+
+    from nrsfm.solvers import registry, starts
+
+    seq = lowrank_sequence(40, 12, 2, seed=3, noise=0.01, missing=0.1)
+    solved = solve(seq, "consensus")
+    assert solved.info["reused"] == [] and starts.remembered_solution(seq, "pr") is not None
+    handed = {name: solve(seq, name) for name in ("empnd", "pr")}  # what another process would hand over
+
+    def refuse(seq, params=None):
+        raise AssertionError("a component was solved again")
+
+    monkeypatch.setattr(starts, "_SOLUTIONS", type(starts._SOLUTIONS)())
+    for name, rec in handed.items():
+        starts.remember_solution(seq, name, rec)
+        monkeypatch.setitem(registry._REGISTRY, name, dataclasses.replace(registry.get_solver(name), solve=refuse))
+    reused = solve(seq.replace(name="elsewhere"), "consensus")
+    assert reused.info["reused"] == ["empnd", "pr"]
+    assert reused.info["component_seconds"] == [handed["empnd"].runtime_s, handed["pr"].runtime_s]
+    np.testing.assert_allclose(reused.points_3d, solved.points_3d)
+
+
 def test_consensus_average_undoes_depth_flips_per_frame_and_weights_the_shapes():
     from nrsfm.solvers import Reconstruction, average_reconstructions
     from nrsfm.geometry import complete_rotation

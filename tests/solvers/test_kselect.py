@@ -1,5 +1,7 @@
 """K chosen by agreement with a reconstruction that needs no K (CSF2's default rule)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -7,7 +9,7 @@ from nrsfm import Reconstruction, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.metrics import e3d
-from nrsfm.solvers import kselect
+from nrsfm.solvers import kselect, starts
 from nrsfm.solvers.kselect import agreement_k, k_candidates
 
 
@@ -68,7 +70,6 @@ def test_csf2_default_k_is_the_agreement_rule_and_finds_the_k_of_low_rank_tracks
 
 
 def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch):
-    from nrsfm.solvers import kselect
     from nrsfm.solvers.registry import get_solver
 
     spec = get_solver("empnd")
@@ -80,7 +81,6 @@ def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch)
         return real(seq, params)
 
     monkeypatch.setattr(spec.solve, "__wrapped__", counted)
-    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
     seq = lowrank_sequence(40, 12, 2, seed=4, noise=0.01)
     solve(seq, "csf2"), solve(seq, "spm"), solve(seq.replace(name="renamed"), "csf2")
     assert len(calls) == 1  # the same tracks under another name are the same input
@@ -89,25 +89,24 @@ def test_csf2_and_spm_on_the_same_tracks_compute_the_reference_once(monkeypatch)
 
 
 def test_a_reference_handed_over_is_used_instead_of_solving_it(monkeypatch):
-    from nrsfm.solvers import kselect
     from nrsfm.solvers.registry import get_solver
 
     seq = lowrank_sequence(40, 12, 2, seed=7, noise=0.01)
-    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
     solved = solve(seq, "csf2")
-    shapes = solve(seq, kselect.REFERENCE_SOLVER).points_3d  # what another process would hand over
+    reference = solve(seq, kselect.REFERENCE_SOLVER)  # what another process would hand over
 
     def refuse(seq, params):
         raise AssertionError("the reference was solved again")
 
     monkeypatch.setattr(get_solver("empnd").solve, "__wrapped__", refuse)
-    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
-    kselect.remember_reference(seq, shapes)
+    monkeypatch.setattr(starts, "_SOLUTIONS", type(starts._SOLUTIONS)())
+    starts.remember_solution(seq, kselect.REFERENCE_SOLVER, reference)
     handed = solve(seq.replace(name="elsewhere"), "csf2")
     assert handed.info["K"] == solved.info["K"] and handed.info["agreement"] == pytest.approx(solved.info["agreement"])
     np.testing.assert_allclose(handed.points_3d, solved.points_3d)
-    with pytest.raises(ValueError, match=r"expected shapes of shape \(40, 12, 3\), got \(40, 11, 3\)"):
-        kselect.remember_reference(seq, shapes[:, :11])
+    cut = dataclasses.replace(reference, points_3d=reference.points_3d[:, :11])
+    with pytest.raises(ValueError, match=r"expected a Reconstruction with shapes of shape \(40, 12, 3\) .*, got \(40, 11"):
+        starts.remember_solution(seq, "empnd", cut)
 
 
 def test_the_k_solves_in_worker_processes_give_the_sequential_result():
@@ -122,14 +121,12 @@ def test_the_k_solves_in_worker_processes_give_the_sequential_result():
 
 
 def test_where_the_reference_fails_the_fallback_rule_chooses_k_and_says_why(monkeypatch):
-    from nrsfm.solvers import kselect
     from nrsfm.solvers.registry import get_solver
 
     def refuse(seq, params):
         raise SolverError("empnd: degenerate tracks")
 
     monkeypatch.setattr(get_solver("empnd").solve, "__wrapped__", refuse)
-    monkeypatch.setattr(kselect, "_REFERENCES", type(kselect._REFERENCES)())
     seq = lowrank_sequence(40, 12, 2, seed=6, noise=0.01)
     rec = solve(seq, "csf2")
     assert rec.info["k_rule"].startswith("rank (the agreement rule's reference failed: empnd: degenerate")

@@ -98,5 +98,5 @@ def test_consensus_computes_the_shared_csf2_start_once(monkeypatch):
     solve(seq, "consensus")  # EM-PND's start with missing points is PR's occlusion-aware start
     assert sum(c.camera_rounds == 50 and c.round_iter == 5 for c in calls) == 1
     assert len(ranks) == 1  # PR's automatic K and CSF2's (in pixels / a power of two) share the noise rank
-    solve(seq, "csf2", **kw)
+    solve(seq, "csf2", k_rule="rank", **kw)
     assert len(ranks) == 2  # outside the consensus: computed again
