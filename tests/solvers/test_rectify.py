@@ -84,3 +84,10 @@ def test_unit_trace_psd_projection():
     np.testing.assert_allclose(np.sort(np.diag(gg))[::-1], [0.4333333333, 0.3333333333, 0.2333333333, 0.0],
                                atol=1e-9)
     assert g.shape == (4, 3) and abs(np.trace(gg) - 1) < 1e-12
+    m = 0.05 * np.random.default_rng(0).normal(size=(9, 9))  # the rank-3 projection keeps the top eigenvectors
+    vec = np.linalg.eigh((m + m.T) / 2)[1][:, -3:]
+    gg, g = project_unit_trace_psd(m, rank=3)
+    np.testing.assert_allclose(vec @ (vec.T @ gg @ vec) @ vec.T, gg, atol=1e-12)
+    assert g.shape == (9, 3) and abs(np.trace(gg) - 1) < 1e-12
+    with pytest.raises(SolverError, match="non-finite"):
+        project_unit_trace_psd(np.full((5, 5), np.nan), rank=3)
