@@ -14,7 +14,7 @@ Each solver runs at its defaults (K = 0 where it has a K); CSF2, SPM and EM-PPCA
 1 to ``--k-max`` that fits the sequence (3K < min(2F, P); K <= 5 on 17 joints). The table gives the camera-frame
 e3D at the default, the best fixed K (an oracle: chosen with the ground truth) and their ratio; the summary
 counts the sequences where the default is within 10% of that oracle. ``--missing 0,0.2`` runs every cell also
-with 20% of the entries missing (fixed seed; SPM needs complete tracks and is not run there). Cells are saved
+with 20% of the entries missing (fixed seed; SPM completes the tracks first, see nrsfm.solvers.spm). Cells are saved
 and resumed as in ``benchmarks.classic``; outputs in ``runs/defaults-SET``.
 """
 

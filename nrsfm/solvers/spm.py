@@ -28,6 +28,12 @@ Options that are not the authors' method, off by default:
   the basis shapes, so its minimum is not the shape when the camera turns through a short arc. Not convex.
 * ``refine_cameras=true``: the cameras refined by the shape step's nuclear norm (:func:`refine_cameras_nuclear`).
 
+Missing points (not in the authors' method, which needs complete tracks): W is completed at rank 3K first, as CSF2
+completes it (:func:`~nrsfm.lowrank.complete_lowrank`: exactly where the visible entries are low-rank, else by hard
+imputation; ``info["completion"]``), and SPM runs on the completed tracks. The energy rule's K then starts from its
+floor (2): while the rule finds a larger K on the tracks completed at 3K, they are completed again at that K's 3K
+(3K + 1 < min(2F, P), K <= 8).
+
 K (``K = 0``), by ``k_rule``: ``"agreement"`` (the default) solves every K from 2 (the energy rule's floor) to
 12 with 3K < min(2F, P) and keeps the largest that agrees (within 5%) as well as any with EM-PND's
 reconstruction (:mod:`nrsfm.solvers.kselect`);
@@ -48,10 +54,10 @@ from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.lowrank import power_of_two_unit
+from nrsfm.lowrank import complete_lowrank, power_of_two_unit
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.solvers.cameras import camera_rows, refine_triple
-from nrsfm.solvers.registry import register
+from nrsfm.solvers.registry import register, require_visible_points
 
 log = logging.getLogger(__name__)
 
@@ -466,15 +472,17 @@ def shape_partial(w: np.ndarray, rot: np.ndarray, keep: int, depth: np.ndarray, 
     return np.einsum("fip,fip->fp", r3, y - base), it
 
 
-@register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)")
+@register("spm", SPMParams, "prior-free NRSfM: PSD rotation program + nuclear-norm shape (Dai et al., CVPR 2012)",
+          handles_missing=True)
 def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
-    """SPM on a complete orthographic sequence. See the module docstring."""
+    """SPM on an orthographic sequence (missing points completed first). See the module docstring."""
     if params.K == 0 and params.k_rule == "agreement":
         return _agreement(seq, params)
     n_frames, n_points = seq.n_frames, seq.n_points
-    w = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)
+    points_2d, k, completion = _complete_tracks(seq, params.K)
+    w = points_2d - points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)
     wm = w.transpose(0, 2, 1).reshape(2 * n_frames, n_points)  # (2F, P)
-    k = choose_k(wm, params.K)
+    k = k or choose_k(wm, params.K)
     cameras = camera_step(wm, k, params.trace_weight)
     rot, cam_residual = cameras.rotations, cameras.residual
     wf = w.transpose(0, 2, 1)  # (F, 2, P)
@@ -512,10 +520,37 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     points = points - points.mean(axis=1, keepdims=True)
     return Reconstruction(points_3d=points, rotations=rot, method="spm", iterations=shape_iterations,
                           converged=converged,
-                          info={"K": k, "shape_solver": solver, "shape_iterations": shape_iterations,
+                          info={"K": k, "completion": completion, "shape_solver": solver,
+                                "shape_iterations": shape_iterations,
                                 "shape_objective": params.shape_objective, "camera_residual": cam_residual,
                                 "refined_cameras": params.refine_cameras,
                                 "k_rule": params.k_rule if params.K == 0 else None})
+
+
+def _complete_tracks(seq: Sequence, k: int) -> tuple[np.ndarray, int, str]:
+    """`(F, P, 2)` tracks of ``seq`` with its missing points completed at rank 3K (module docstring), K (``k``, or
+    for ``k = 0`` the energy rule's on missing tracks; 0 for complete tracks, whose K the caller chooses) and how
+    they were completed (``"none"``, ``"exact"`` or ``"imputed"``)."""
+    vis = seq.weights > 0  # (F, P)
+    if vis.all():
+        return seq.points_2d, 0, "none"
+    require_visible_points(seq, "spm")
+    n_frames, n_points = seq.n_frames, seq.n_points
+    mask = np.repeat(vis, 2, axis=0)  # (2F, P)
+    w = np.where(mask, seq.measurement_matrix(), 0.0)  # (2F, P)
+    cap = min(8, (min(2 * n_frames, n_points) - 2) // 3)  # the largest K with 3K + 1 < min(2F, P)
+    if cap < 1 or (k and 3 * k + 1 >= n_points):
+        raise SolverError(f"spm: completing missing points at rank 3K needs 3K + 1 < P (here P = {n_points}"
+                          f"{f', K = {k}' if k else ''}); pass a smaller K, or complete tracks")
+    given = k
+    k = k or min(2, cap)  # the energy rule's floor
+    while True:
+        full, completion = complete_lowrank(w, mask, 3 * k)
+        more = 0 if given else min(choose_k(full - full.mean(axis=1, keepdims=True), 0), cap)
+        if more <= k:
+            break
+        k = more
+    return full.reshape(n_frames, 2, n_points).transpose(0, 2, 1), k, completion
 
 
 def _agreement(seq: Sequence, params: SPMParams) -> Reconstruction:
