@@ -82,5 +82,5 @@ def test_consensus_refuses_bad_settings_and_names_itself_in_component_errors():
         ConsensusParams(weights="1,-1")
     with pytest.raises(ValidationError, match="comma-separated numbers"):
         ConsensusParams(weights="a,b")
-    with pytest.raises(SolverError, match="^consensus: spm: expected complete tracks"):
-        solve(lowrank_sequence(30, 10, 2, seed=0, missing=0.1), "consensus", methods="empnd,spm", weights="1,1")
+    with pytest.raises(SolverError, match="^consensus: rank3: expected complete tracks"):
+        solve(lowrank_sequence(30, 10, 2, seed=0, missing=0.1), "consensus", methods="empnd,rank3", weights="1,1")
