@@ -538,10 +538,12 @@ def _complete_tracks(seq: Sequence, k: int) -> tuple[np.ndarray, int, str]:
     n_frames, n_points = seq.n_frames, seq.n_points
     mask = np.repeat(vis, 2, axis=0)  # (2F, P)
     w = np.where(mask, seq.measurement_matrix(), 0.0)  # (2F, P)
-    cap = min(8, (min(2 * n_frames, n_points) - 2) // 3)  # the largest K with 3K + 1 < min(2F, P)
-    if cap < 1 or (k and 3 * k + 1 >= n_points):
-        raise SolverError(f"spm: completing missing points at rank 3K needs 3K + 1 < P (here P = {n_points}"
-                          f"{f', K = {k}' if k else ''}); pass a smaller K, or complete tracks")
+    room = min(2 * n_frames, n_points)
+    cap = min(8, (room - 2) // 3)  # the largest K with 3K + 1 < min(2F, P)
+    if cap < 1 or (k and 3 * k + 1 >= room):
+        raise SolverError(f"spm: completing missing points at rank 3K needs 3K + 1 < min(2F, P) (here 2F = "
+                          f"{2 * n_frames}, P = {n_points}{f', K = {k}' if k else ''}); pass a smaller K, or complete "
+                          "tracks")
     given = k
     k = k or min(2, cap)  # the energy rule's floor
     while True:

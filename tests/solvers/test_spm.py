@@ -176,8 +176,7 @@ def test_spm_completes_missing_points_exactly_on_noise_free_tracks():
 
 def test_spm_imputes_noisy_tracks_and_its_energy_rule_climbs_from_its_floor():
     """With noise the completion is a hard imputation; the energy rule starts at K = 2 and stays there when the
-    tracks completed at rank 6 hold their energy in 6 singular values (a completion at the largest rank, 18 of 20
-    columns, leaves the missing entries almost free and the rule then finds K = 6)."""
+    tracks completed at rank 6 hold their energy in 6 singular values."""
     from nrsfm.datasets.synthetic import drop_entries
 
     full = lowrank_sequence(60, 20, 2, seed=3, noise=0.01, name="lr")
@@ -191,5 +190,5 @@ def test_spm_refuses_a_completion_with_too_few_points():
     from nrsfm.datasets.synthetic import drop_entries
 
     seq = drop_entries(lowrank_sequence(30, 7, 1, seed=1, name="seven"), 0.2)
-    with pytest.raises(SolverError, match=r"^spm: completing missing points at rank 3K needs 3K \+ 1 < P"):
+    with pytest.raises(SolverError, match=r"^spm: completing missing points at rank 3K needs 3K \+ 1 < min\(2F, P\)"):
         solve(seq, "spm", K=2)
