@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from nrsfm import ValidationError, solve
-from nrsfm.datasets.synthetic import lowrank_sequence
+from nrsfm import SolverError, ValidationError, solve
+from nrsfm.datasets.synthetic import drop_entries, lowrank_sequence
 from nrsfm.metrics import e3d, rotation_error
 
 
@@ -163,8 +163,6 @@ def test_spm_default_k_is_the_agreement_rule_from_k_2():
 def test_spm_completes_missing_points_exactly_on_noise_free_tracks():
     """Noise-free low-rank tracks with 20% of the points missing are completed exactly (rank 3K plus a translation),
     so SPM gives the shapes it gives on the complete tracks."""
-    from nrsfm.datasets.synthetic import drop_entries
-
     full = lowrank_sequence(60, 20, 2, seed=3, name="lr")
     missing = drop_entries(full, 0.2)
     assert not missing.is_complete
@@ -177,8 +175,6 @@ def test_spm_completes_missing_points_exactly_on_noise_free_tracks():
 def test_spm_imputes_noisy_tracks_and_its_energy_rule_climbs_from_its_floor():
     """With noise the completion is a hard imputation; the energy rule starts at K = 2 and stays there when the
     tracks completed at rank 6 hold their energy in 6 singular values."""
-    from nrsfm.datasets.synthetic import drop_entries
-
     full = lowrank_sequence(60, 20, 2, seed=3, noise=0.01, name="lr")
     rec = solve(drop_entries(full, 0.2), "spm", k_rule="energy")
     assert rec.info["completion"] == "imputed" and rec.info["K"] == 2
@@ -186,9 +182,6 @@ def test_spm_imputes_noisy_tracks_and_its_energy_rule_climbs_from_its_floor():
 
 
 def test_spm_refuses_a_completion_with_too_few_points():
-    from nrsfm import SolverError
-    from nrsfm.datasets.synthetic import drop_entries
-
     seq = drop_entries(lowrank_sequence(30, 7, 1, seed=1, name="seven"), 0.2)
     with pytest.raises(SolverError, match=r"^spm: completing missing points at rank 3K needs 3K \+ 1 < min\(2F, P\)"):
         solve(seq, "spm", K=2)
