@@ -13,6 +13,12 @@ The rule (``k_rule="agreement"``, the default of CSF2 and SPM with ``K = 0``):
    best fixed K on all six, worst ratio 1.05, against 1.08 for the nearest K and 1.06 for 10%) and then
    measured on the validation set of ``benchmarks.defaults``.
 
+Missing points: EM-PND takes them as they are; the Ks are then all solved on one set of complete tracks, the
+visible points kept and each missing one filled by the reference's projection (:func:`fill_missing`), instead of
+each K completing the tracks itself at rank 3K. The fill is the same for every K, so the distances of step 3
+compare the Ks' models alone, and EM-PND's model-based fill is closer to the hidden points than a rank-3K
+completion of real motion. The reconstruction's ``info["completion"]`` is then ``"reference"``.
+
 No ground truth enters and nothing depends on a name. A K whose solution fell into a poor minimum disagrees with
 the reference and is passed over; so is a K too small to hold the motion. Cost: one EM-PND solve plus one solve
 per K (five on 17 joints, twelve on 37 or more points), in one :class:`joblib.Parallel` batch (one process
@@ -123,28 +129,56 @@ def _solve_fixed(solver: str, seq: Sequence, params: Any, k: int | None = None) 
     return get_solver(solver).solve.__wrapped__(seq, params if k is None else dataclasses.replace(params, K=k))
 
 
+def fill_missing(seq: Sequence, shapes: np.ndarray) -> Sequence:
+    """``seq`` with each missing point replaced by the orthographic projection of ``shapes`` `(F, P, 3)` (camera
+    frame, a :class:`~nrsfm.reconstruction.Reconstruction`'s ``points_3d``), shifted by the frame's translation
+    fitted on its visible points; visible points are kept and every weight becomes 1. Complete tracks are returned
+    as they are."""
+    vis = seq.weights > 0  # (F, P)
+    if vis.all():
+        return seq
+    proj = np.asarray(shapes, dtype=np.float64)[..., :2]  # (F, P, 2)
+    gap = np.where(vis[..., None], seq.points_2d - proj, 0.0)
+    shift = gap.sum(axis=1, keepdims=True) / np.maximum(vis.sum(axis=1), 1)[:, None, None]  # (F, 1, 2)
+    return seq.replace(points_2d=np.where(vis[..., None], seq.points_2d, proj + shift), visibility=None)
+
+
 def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
     """The registered ``solver`` on ``seq`` with the K among ``ks`` that agrees with EM-PND's reconstruction
     (:func:`agreement_k`), the distances in ``info["agreement"]``. EM-PND runs in the same
     :class:`joblib.Parallel` batch as the K solves unless this process has it
     (:func:`~nrsfm.solvers.starts.remembered_solution`), and is kept for the next solver on the same tracks. Where
     EM-PND refuses the tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]``
-    saying why."""
+    saying why.
+
+    With missing points EM-PND runs first and every K is solved on the tracks its reconstruction completes
+    (:func:`fill_missing`; ``info["completion"] = "reference"``) instead of the solver's own rank-3K completion."""
     from joblib import Parallel, delayed
 
+    from nrsfm.solvers.registry import require_visible_points
     from nrsfm.solvers.starts import remember_solution, remembered_solution
 
-    solves = [delayed(_attempt)(functools.partial(_solve_fixed, solver, seq, params), k) for k in ks]
-    reference = remembered_solution(seq, REFERENCE_SOLVER)
-    if reference is not None:
-        recs = Parallel()(solves)
-    else:
-        reference, *recs = Parallel()([delayed(_reference)(seq), *solves])
+    def solves(tracks: Sequence) -> list:
+        return [delayed(_attempt)(functools.partial(_solve_fixed, solver, tracks, params), k) for k in ks]
+
+    complete = bool((seq.weights > 0).all())
+    if not complete:
+        require_visible_points(seq, solver)
+    reference, recs = remembered_solution(seq, REFERENCE_SOLVER), None
+    if reference is None:
+        if complete:
+            reference, *recs = Parallel()([delayed(_reference)(seq), *solves(seq)])
+        else:
+            reference = _reference(seq)
         if isinstance(reference, NRSfMError):
             rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
             rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {reference})")
             return rec
         remember_solution(seq, REFERENCE_SOLVER, reference)
+    if recs is None:
+        recs = Parallel()(solves(fill_missing(seq, reference.points_3d)))
     rec, dist = _keep(list(ks), recs, reference.points_3d)
     rec.info.update(k_rule="agreement", agreement=dist)
+    if not complete:
+        rec.info.update(completion="reference")
     return rec
