@@ -131,3 +131,33 @@ def test_where_the_reference_fails_the_fallback_rule_chooses_k_and_says_why(monk
     rec = solve(seq, "csf2")
     assert rec.info["k_rule"].startswith("rank (the agreement rule's reference failed: empnd: degenerate")
     assert "agreement" not in rec.info and rec.info["K"] == solve(seq, "csf2", k_rule="rank").info["K"]
+
+
+def test_fill_missing_keeps_visible_points_and_projects_the_shapes_at_the_hidden_ones():
+    from nrsfm.datasets.synthetic import drop_entries
+
+    seq = lowrank_sequence(30, 12, 2, seed=2, noise=0.01)
+    assert kselect.fill_missing(seq, seq.points_3d) is seq  # complete tracks: nothing to fill
+    holed = drop_entries(seq, 0.3)
+    vis = holed.weights > 0
+    shapes = seq.points_3d + 0.05 * np.random.default_rng(3).standard_normal(seq.points_3d.shape)
+    filled = kselect.fill_missing(holed.replace(points_2d=np.where(vis[..., None], holed.points_2d, np.nan)), shapes)
+    assert filled.is_complete and np.array_equal(filled.points_2d[vis], seq.points_2d[vis])
+    shift = np.array([(seq.points_2d[f] - shapes[f, :, :2])[vis[f]].mean(axis=0) for f in range(30)])  # (F, 2)
+    expected = shapes[..., :2] + shift[:, None, :]
+    np.testing.assert_allclose(filled.points_2d[~vis], expected[~vis])
+
+
+def test_with_missing_points_every_k_is_solved_on_the_tracks_the_reference_completes():
+    from nrsfm.datasets.synthetic import drop_entries
+
+    seq = drop_entries(lowrank_sequence(40, 15, 2, seed=8, noise=0.01), 0.2)
+    rec = solve(seq, "csf2")
+    assert rec.info["completion"] == "reference" and rec.info["k_rule"] == "agreement"
+    reference = solve(seq, kselect.REFERENCE_SOLVER)
+    filled = kselect.fill_missing(seq, reference.points_3d)
+    same = solve(filled, "csf2", K=rec.info["K"])  # the kept K, solved on the completed tracks
+    np.testing.assert_allclose(rec.points_3d, same.points_3d)
+    assert same.info["completion"] == "none"
+    assert rec.info["agreement"][rec.info["K"]] == pytest.approx(e3d(same.points_3d, reference.points_3d))
+    assert solve(seq, "csf2", K=2).info["completion"] in ("exact", "imputed")  # a fixed K completes on its own
