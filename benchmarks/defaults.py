@@ -1,7 +1,8 @@
 """Every solver at its default settings beside its best fixed K, on the tuning set and on a validation set.
 
     OMP_NUM_THREADS=1 python -m benchmarks.defaults [--set validation|cmu] [--root DIR] [--jobs N]
-        [--methods a,b] [--missing 0,0.2] [--k-max 12] [--out DIR] [--rerun] [--no-progress]
+        [--methods a,b] [--missing 0,0.2] [--fill auto|reference|lowrank] [--k-max 12] [--out DIR] [--rerun]
+        [--no-progress]
 
 The library's defaults (CSF2's and SPM's automatic K, the consensus weights, EM-PPCA's K, PR's regulariser)
 were chosen on the CMU files (``--set cmu``, the tuning set). The validation set (``--set validation``,
@@ -14,8 +15,11 @@ Each solver runs at its defaults (K = 0 where it has a K); CSF2, SPM and EM-PPCA
 1 to ``--k-max`` that fits the sequence (3K < min(2F, P); K <= 5 on 17 joints). The table gives the camera-frame
 e3D at the default, the best fixed K (an oracle: chosen with the ground truth) and their ratio; the summary
 counts the sequences where the default is within 10% of that oracle. ``--missing 0,0.2`` runs every cell also
-with 20% of the entries missing (fixed seed; SPM completes the tracks first, see nrsfm.solvers.spm). Cells are saved
-and resumed as in ``benchmarks.classic``; outputs in ``runs/defaults-SET``.
+with 20% of the entries missing (fixed seed). CSF2 and SPM complete missing points as their ``fill`` parameter
+says: by default (``--fill auto``) the automatic K solves every K on the tracks EM-PND's reconstruction completes,
+while each fixed K completes them at rank 3K; ``--fill reference`` completes them by EM-PND's reconstruction at
+every fixed K too (the oracle of the automatic K's own path), ``--fill lowrank`` at rank 3K everywhere. Cells are
+saved and resumed as in ``benchmarks.classic``; outputs in ``runs/defaults-SET``.
 """
 
 from __future__ import annotations
@@ -43,6 +47,8 @@ FACES = (1, 2)
 N_FRAMES = 300
 #: Solvers with a number of basis shapes ``K`` (0: automatic), swept over fixed K.
 WITH_K = ("csf2", "spm", "emppca")
+#: Solvers with a ``fill`` parameter (how missing points are completed; ``--fill``).
+WITH_FILL = ("csf2", "spm")
 
 
 def validation_jobs(root: str | None) -> tuple[Path | None, list[str]]:
@@ -95,8 +101,9 @@ def k_cap(n_frames: int, n_points: int, k_max: int) -> int:
     return max(1, min(k_max, (min(2 * n_frames, n_points) - 1) // 3))
 
 
-def run_cell(job: str, method: str, k: int | None, missing: float) -> dict:
-    """One solver on one sequence: ``k`` None for its defaults, else that fixed K. Errors are recorded."""
+def run_cell(job: str, method: str, k: int | None, missing: float, fill: str = "auto") -> dict:
+    """One solver on one sequence: ``k`` None for its defaults, else that fixed K; ``fill`` for the solvers of
+    :data:`WITH_FILL`. Errors are recorded."""
     import nrsfm
     from nrsfm.datasets.synthetic import drop_entries
     from nrsfm.errors import NRSfMError
@@ -104,9 +111,14 @@ def run_cell(job: str, method: str, k: int | None, missing: float) -> dict:
 
     seq = drop_entries(load_job(job), missing)
     row = {"sequence": seq.name, "method": method, "K": "default" if k is None else k, "missing": missing}
+    if method in WITH_FILL and fill != "auto":
+        row["fill"] = fill
     t0 = time.perf_counter()
     try:
-        rec = nrsfm.solve(seq, method, **({} if k is None else {"K": k}))
+        settings = {} if k is None else {"K": k}
+        if method in WITH_FILL and fill != "auto":
+            settings["fill"] = fill
+        rec = nrsfm.solve(seq, method, **settings)
     except NRSfMError as exc:
         return {**row, "status": "not run", "why": str(exc), "seconds": time.perf_counter() - t0}
     chosen = rec.info.get("K") if k is None else k
@@ -150,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers import available_solvers
+    from nrsfm.solvers.kselect import FILLS
 
     from benchmarks.classic import _jobs, benchmark_sequences, job_identity
     from benchmarks.common import add_run_arguments
@@ -161,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=_jobs, default=1, help="parallel cells (joblib)")
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
     p.add_argument("--missing", default="0", help="comma-separated fractions of entries to mark missing")
+    p.add_argument("--fill", choices=FILLS, default="auto",
+                   help="how CSF2 and SPM complete missing points, at the default and every fixed K (module docstring)")
     p.add_argument("--k-max", type=int, default=12, help="largest fixed K swept (default 12)")
     p.add_argument("--out", default=None, help="output folder (default: runs/defaults-SET)")
     add_run_arguments(p)
@@ -193,9 +208,12 @@ def main(argv: list[str] | None = None) -> int:
         for miss in missing:
             for m in methods:
                 ks = [None] + (list(range(1, k_cap(*sizes[j], args.k_max) + 1)) if m in WITH_K else [])
+                fill = args.fill if m in WITH_FILL and miss > 0 else "auto"  # complete tracks: nothing to fill
+                tag = {} if fill == "auto" else {"fill": fill}
                 for k in ks:
-                    cells.append((f"{label}-{m}-K{k or 0}-m{miss:g}",
-                                  {**ident, "method": m, "K": k, "missing": miss, "code": code}, (j, m, k, miss)))
+                    cells.append((f"{label}-{m}-K{k or 0}-m{miss:g}" + "".join(f"-{v}" for v in tag.values()),
+                                  {**ident, "method": m, "K": k, "missing": miss, **tag, "code": code},
+                                  (j, m, k, miss, fill)))
     done = run_cells_from_args(args, cells, run_cell, out, "defaults")
     if done is None:
         return 130
@@ -214,13 +232,15 @@ def main(argv: list[str] | None = None) -> int:
         (f", {folder}" if folder is not None else ", synthetic stand-ins")
     text = (f"### Every solver at its defaults against its best fixed K ({where})\n\nCamera-frame e3D. "
             f"'best fixed K' is an oracle (chosen with the ground truth), over K = 1..{args.k_max} with "
-            f"3K < min(2F, P).\n\n"
+            f"3K < min(2F, P)"
+            + (f"; CSF2 and SPM complete missing points with fill = {args.fill} at every K" if args.fill != "auto"
+               else "") + ".\n\n"
             + markdown_table(["sequence", "method", "missing", "e3D default", "K chosen", "best fixed K (oracle)",
                               "ratio", "time (s)"], table)
             + ("\n\n" + "\n".join(lines) if lines else "") + "\n")
     write_outputs(out, "defaults", text, rows, run_metadata(
         benchmark="solver defaults", set=args.which, data=str(folder or "synthetic stand-ins"), methods=methods,
-        missing=missing, k_max=args.k_max, jobs=args.jobs, cells_reused=reused,
+        missing=missing, fill=args.fill, k_max=args.k_max, jobs=args.jobs, cells_reused=reused,
         wall_s=time.perf_counter() - t0), summary=summary)
     return 0
 

@@ -67,6 +67,7 @@ from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.cameras import camera_rows
 from nrsfm.solvers.dct import dct_basis, dct_weighted_gram_blocks
+from nrsfm.solvers.kselect import FILLS, solve_on_reference_fill
 from nrsfm.solvers.registry import register, require_visible_points
 from nrsfm.solvers.starts import auto_k, auto_k_max_rank
 
@@ -82,6 +83,9 @@ class CSF2Params:
     Attributes:
         K: number of basis shapes; d: number of DCT vectors.
         k_rule: how ``K = 0`` chooses K: ``"agreement"`` or ``"rank"`` (module docstring).
+        fill: how missing points are completed: ``"auto"`` (by EM-PND's reconstruction with the automatic K,
+            at rank 3K with a fixed K), ``"reference"`` (always by EM-PND's; one EM-PND solve per tracks) or
+            ``"lowrank"`` (always at rank 3K); :data:`~nrsfm.solvers.kselect.FILLS`.
         max_iter, tol: Gauss-Newton iterations and stopping rule (RMSE drop over two iterations, relative to
             the RMS of the centred W).
         energy: singular values kept for the camera factor (relative to the largest).
@@ -104,6 +108,7 @@ class CSF2Params:
     K: int = 0
     d: int = 0
     k_rule: str = "agreement"
+    fill: str = "auto"
     max_iter: int = 100
     tol: float = 1e-6
     energy: float = 1e-4
@@ -122,6 +127,8 @@ class CSF2Params:
     def __post_init__(self) -> None:
         if self.k_rule not in K_RULES:
             raise ValidationError(f"k_rule: expected one of {K_RULES}, got {self.k_rule!r}")
+        if self.fill not in FILLS:
+            raise ValidationError(f"fill: expected one of {FILLS}, got {self.fill!r}")
         if self.ridge < 0 or not 0 < self.energy < 1 or self.tol < 0 or not 0 <= self.start_margin < 1 \
                 or not self.race_margin >= 0 or self.race_from < 0 or not 0 < self.random_accept <= 1:
             raise ValidationError(f"CSF2Params: expected ridge >= 0, 0 < energy < 1, tol >= 0, 0 <= start_margin < 1, "
@@ -237,6 +244,8 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     """CSF2 on an orthographic sequence (missing points allowed). See the module docstring."""
     if params.K == 0 and params.k_rule == "agreement":
         return _agreement(seq, params)
+    if params.fill == "reference" and not seq.is_complete:
+        return solve_on_reference_fill(solve_csf2.__wrapped__, seq, params)
     n_frames = seq.n_frames
     vis = seq.weights > 0  # (F, P)
     require_visible_points(seq, "csf2")

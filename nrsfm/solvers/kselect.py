@@ -143,6 +143,40 @@ def fill_missing(seq: Sequence, shapes: np.ndarray) -> Sequence:
     return seq.replace(points_2d=np.where(vis[..., None], seq.points_2d, proj + shift), visibility=None)
 
 
+#: How CSF2 and SPM complete missing points (their ``fill`` parameter): ``"auto"``: by the reference's
+#: reconstruction with the agreement rule's automatic K (:func:`solve_by_agreement`), each K on its own (rank 3K)
+#: with a fixed K; ``"reference"``: always by EM-PND's reconstruction (:func:`fill_from_reference`);
+#: ``"lowrank"``: always each K on its own.
+FILLS = ("auto", "reference", "lowrank")
+
+
+def fill_from_reference(seq: Sequence) -> Sequence:
+    """``seq`` with its missing points filled by :data:`REFERENCE_SOLVER`'s reconstruction at its defaults
+    (:func:`fill_missing`), solved once per tracks and kept (:func:`~nrsfm.solvers.starts.remember_solution`);
+    raises the reference's :class:`~nrsfm.errors.NRSfMError` where it refuses the tracks."""
+    from nrsfm.solvers.starts import remember_solution, remembered_solution
+
+    if seq.is_complete:
+        return seq
+    reference = remembered_solution(seq, REFERENCE_SOLVER)
+    if reference is None:
+        reference = _reference(seq)
+        if isinstance(reference, NRSfMError):
+            raise reference
+        remember_solution(seq, REFERENCE_SOLVER, reference)
+    return fill_missing(seq, reference.points_3d)
+
+
+def solve_on_reference_fill(solve: Callable[[Sequence, Any], Reconstruction], seq: Sequence,
+                            params: Any) -> Reconstruction:
+    """``solve(filled, params)`` on ``seq`` filled by :func:`fill_from_reference`, ``info["completion"]`` set to
+    ``"reference"`` where points were missing."""
+    rec = solve(fill_from_reference(seq), params)
+    if not seq.is_complete:
+        rec.info.update(completion="reference")
+    return rec
+
+
 def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
     """The registered ``solver`` on ``seq`` with the K among ``ks`` that agrees with EM-PND's reconstruction
     (:func:`agreement_k`), the distances in ``info["agreement"]``. EM-PND runs in the same
@@ -151,8 +185,9 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
     EM-PND refuses the tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]``
     saying why.
 
-    With missing points EM-PND runs first and every K is solved on the tracks its reconstruction completes
-    (:func:`fill_missing`; ``info["completion"] = "reference"``) instead of the solver's own rank-3K completion."""
+    With missing points (and ``params.fill`` not ``"lowrank"``) EM-PND runs first and every K is solved on the
+    tracks its reconstruction completes (:func:`fill_missing`; ``info["completion"] = "reference"``) instead of
+    the solver's own rank-3K completion."""
     from joblib import Parallel, delayed
 
     from nrsfm.solvers.registry import require_visible_points
@@ -161,7 +196,7 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
     def solves(tracks: Sequence) -> list:
         return [delayed(_attempt)(functools.partial(_solve_fixed, solver, tracks, params), k) for k in ks]
 
-    complete = bool((seq.weights > 0).all())
+    complete = seq.is_complete or params.fill == "lowrank"  # with "lowrank" each K completes the tracks itself
     if not complete:
         require_visible_points(seq, solver)
     reference, recs = remembered_solution(seq, REFERENCE_SOLVER), None
@@ -176,7 +211,7 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
             return rec
         remember_solution(seq, REFERENCE_SOLVER, reference)
     if recs is None:
-        recs = Parallel()(solves(fill_missing(seq, reference.points_3d)))
+        recs = Parallel()(solves(seq if complete else fill_missing(seq, reference.points_3d)))
     rec, dist = _keep(list(ks), recs, reference.points_3d)
     rec.info.update(k_rule="agreement", agreement=dist)
     if not complete:

@@ -58,6 +58,7 @@ from nrsfm.sequence import Sequence
 from nrsfm.lowrank import complete_lowrank, power_of_two_unit
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.solvers.cameras import camera_rows, refine_triple
+from nrsfm.solvers.kselect import FILLS, solve_on_reference_fill
 from nrsfm.solvers.registry import register, require_visible_points
 
 log = logging.getLogger(__name__)
@@ -68,6 +69,9 @@ class SPMParams:
 
     Attributes:
         K: number of basis shapes (0: automatic, by ``k_rule``: ``"agreement"`` or ``"energy"``; module docstring).
+        fill: how missing points are completed: ``"auto"`` (by EM-PND's reconstruction with the automatic K,
+            at rank 3K with a fixed K), ``"reference"`` (always by EM-PND's; one EM-PND solve per tracks) or
+            ``"lowrank"`` (always at rank 3K); :data:`~nrsfm.solvers.kselect.FILLS`.
         shape_solver: ``"cvxpy"``, ``"admm"``, ``"fpc"`` or ``"auto"`` (cvxpy when F + 3P <= cvxpy_limit, else ADMM).
         trace_weight: weight of trace(Q) in the rotation program (relative).
         shape_objective: ``"nuclear"`` (the authors': the nuclear norm of ``S#``) or ``"partial"`` (the sum of its
@@ -83,6 +87,7 @@ class SPMParams:
 
     K: int = 0
     k_rule: str = "agreement"
+    fill: str = "auto"
     shape_solver: str = "auto"
     shape_objective: str = "nuclear"
     trace_weight: float = 1e-4
@@ -101,6 +106,8 @@ class SPMParams:
     def __post_init__(self) -> None:
         if self.k_rule not in ("agreement", "energy"):
             raise ValidationError(f"k_rule: expected 'agreement' or 'energy', got {self.k_rule!r}")
+        if self.fill not in FILLS:
+            raise ValidationError(f"fill: expected one of {FILLS}, got {self.fill!r}")
         if self.shape_solver not in ("auto", "cvxpy", "admm", "fpc"):
             raise ValidationError(f"shape_solver: expected 'auto', 'cvxpy', 'admm' or 'fpc', got {self.shape_solver!r}")
         if self.shape_objective not in ("nuclear", "partial"):
@@ -479,6 +486,8 @@ def solve_spm(seq: Sequence, params: SPMParams) -> Reconstruction:
     """SPM on an orthographic sequence (missing points completed first). See the module docstring."""
     if params.K == 0 and params.k_rule == "agreement":
         return _agreement(seq, params)
+    if params.fill == "reference" and not seq.is_complete:
+        return solve_on_reference_fill(solve_spm.__wrapped__, seq, params)
     n_frames, n_points = seq.n_frames, seq.n_points
     points_2d, k, completion = _complete_tracks(seq, params.K)
     w = points_2d - points_2d.mean(axis=1, keepdims=True)  # (F, P, 2)

@@ -371,6 +371,27 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     assert "not run:" in text
 
 
+
+def test_defaults_fill_reference_completes_every_fixed_k_by_the_reference(tmp_path, capsys, monkeypatch):
+    from nrsfm.datasets.synthetic import drop_entries
+
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    monkeypatch.setattr(defaults, "N_FRAMES", 30)
+    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:1])
+    monkeypatch.setattr(defaults, "FACES", ())
+    out = tmp_path / "d"
+    args = ["--methods", "csf2", "--k-max", "2", "--missing", "0.2", "--fill", "reference", "--out", str(out),
+            "--no-progress"]
+    assert defaults.main(args) == 0
+    assert "complete missing points with fill = reference" in capsys.readouterr().out
+    rows = json.loads((out / "defaults.json").read_text())["rows"]
+    assert len(rows) == 3 and all(r["fill"] == "reference" for r in rows)
+    seq = drop_entries(defaults.load_job(defaults.validation_jobs(None)[1][0]), 0.2)
+    k2 = next(r for r in rows if r["K"] == 2)
+    assert k2["e3d"] == pytest.approx(e3d(solve(seq, "csf2", K=2, fill="reference").points_3d, seq.points_3d))
+    with pytest.raises(SystemExit):  # argparse: "invalid choice: 'mean' (choose from auto, reference, lowrank)"
+        defaults.main(["--fill", "mean"])
+
 def test_k_reference_scores_each_rule_on_the_tuning_and_validation_sets(tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("NRSFM_DATA", raising=False)
     monkeypatch.setattr(defaults, "N_FRAMES", 30)

@@ -161,3 +161,20 @@ def test_with_missing_points_every_k_is_solved_on_the_tracks_the_reference_compl
     assert same.info["completion"] == "none"
     assert rec.info["agreement"][rec.info["K"]] == pytest.approx(e3d(same.points_3d, reference.points_3d))
     assert solve(seq, "csf2", K=2).info["completion"] in ("exact", "imputed")  # a fixed K completes on its own
+
+
+@pytest.mark.parametrize("method", ["csf2", "spm"])
+def test_fill_chooses_how_missing_points_are_completed_at_any_k(method):
+    from nrsfm.datasets.synthetic import drop_entries
+
+    seq = drop_entries(lowrank_sequence(40, 15, 2, seed=9, noise=0.01), 0.2)
+    filled = kselect.fill_from_reference(seq)
+    by_reference = solve(seq, method, K=2, fill="reference")
+    assert by_reference.info["completion"] == "reference"
+    np.testing.assert_allclose(by_reference.points_3d, solve(filled, method, K=2).points_3d)
+    assert solve(seq, method, K=2).info["completion"] in ("exact", "imputed")  # "auto" with a fixed K
+    own = solve(seq, method, fill="lowrank")  # the automatic K with each K completing the tracks itself
+    assert own.info["completion"] in ("exact", "imputed") and own.info["k_rule"] == "agreement"
+    assert solve(seq.replace(visibility=None), method, K=2, fill="reference").info["completion"] == "none"
+    with pytest.raises(ValidationError, match="fill: expected one of"):
+        solve(seq, method, fill="mean")
