@@ -21,7 +21,8 @@ Departures from the authors, each to escape a poor minimum of step 2 (``benchmar
   ``random_accept`` times the RMSE of the deterministic starts: a different basin, not a slightly better fit.
 
 Missing points (the occlusion-aware variant): W is completed first (:func:`~nrsfm.lowrank.complete_lowrank`,
-``info["completion"]``). Where the visible entries are exactly low-rank (noise-free tracks), that fill is the true
+``info["completion"]``; ``fill`` in :class:`CSF2Params` can complete it by EM-PND's reconstruction instead, the
+automatic K's default). Where the visible entries are exactly low-rank (noise-free tracks), that fill is the true
 W and CSF2 runs on it as on complete tracks. Otherwise W is completed by a rank-3K hard imputation, steps 1-2 run
 on it, and then
 

@@ -196,12 +196,12 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
     def solves(tracks: Sequence) -> list:
         return [delayed(_attempt)(functools.partial(_solve_fixed, solver, tracks, params), k) for k in ks]
 
-    complete = seq.is_complete or params.fill == "lowrank"  # with "lowrank" each K completes the tracks itself
-    if not complete:
+    as_given = seq.is_complete or params.fill == "lowrank"  # else the Ks run on the reference's fill
+    if not as_given:
         require_visible_points(seq, solver)
     reference, recs = remembered_solution(seq, REFERENCE_SOLVER), None
     if reference is None:
-        if complete:
+        if as_given:
             reference, *recs = Parallel()([delayed(_reference)(seq), *solves(seq)])
         else:
             reference = _reference(seq)
@@ -211,9 +211,9 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
             return rec
         remember_solution(seq, REFERENCE_SOLVER, reference)
     if recs is None:
-        recs = Parallel()(solves(seq if complete else fill_missing(seq, reference.points_3d)))
+        recs = Parallel()(solves(seq if as_given else fill_missing(seq, reference.points_3d)))
     rec, dist = _keep(list(ks), recs, reference.points_3d)
     rec.info.update(k_rule="agreement", agreement=dist)
-    if not complete:
+    if not as_given:
         rec.info.update(completion="reference")
     return rec

@@ -32,7 +32,8 @@ Missing points (not in the authors' method, which needs complete tracks): W is c
 completes it (:func:`~nrsfm.lowrank.complete_lowrank`: exactly where the visible entries are low-rank, else by hard
 imputation; ``info["completion"]``), and SPM runs on the completed tracks. The energy rule's K then starts from its
 floor (2): while the rule finds a larger K on the tracks completed at 3K, they are completed again at that K's 3K
-(3K + 1 < min(2F, P), K <= 8).
+(3K + 1 < min(2F, P), K <= 8). ``fill`` chooses the completion (:class:`SPMParams`): the automatic K's
+default fills the tracks by EM-PND's reconstruction instead.
 
 K (``K = 0``), by ``k_rule``: ``"agreement"`` (the default) solves every K from 2 (the energy rule's floor) to
 12 with 3K < min(2F, P) and keeps the largest that agrees (within 5%) as well as any with EM-PND's
