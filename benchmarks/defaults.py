@@ -110,15 +110,11 @@ def run_cell(job: str, method: str, k: int | None, missing: float, fill: str = "
     from nrsfm.metrics import e3d
 
     seq = drop_entries(load_job(job), missing)
-    row = {"sequence": seq.name, "method": method, "K": "default" if k is None else k, "missing": missing}
-    if method in WITH_FILL and fill != "auto":
-        row["fill"] = fill
+    filled = {"fill": fill} if method in WITH_FILL and fill != "auto" else {}
+    row = {"sequence": seq.name, "method": method, "K": "default" if k is None else k, "missing": missing, **filled}
     t0 = time.perf_counter()
     try:
-        settings = {} if k is None else {"K": k}
-        if method in WITH_FILL and fill != "auto":
-            settings["fill"] = fill
-        rec = nrsfm.solve(seq, method, **settings)
+        rec = nrsfm.solve(seq, method, **({} if k is None else {"K": k}), **filled)
     except NRSfMError as exc:
         return {**row, "status": "not run", "why": str(exc), "seconds": time.perf_counter() - t0}
     chosen = rec.info.get("K") if k is None else k
