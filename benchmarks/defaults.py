@@ -102,15 +102,15 @@ def k_cap(n_frames: int, n_points: int, k_max: int) -> int:
 
 
 def run_cell(job: str, method: str, k: int | None, missing: float, fill: str = "auto") -> dict:
-    """One solver on one sequence: ``k`` None for its defaults, else that fixed K; ``fill`` for the solvers of
-    :data:`WITH_FILL`. Errors are recorded."""
+    """One solver on one sequence: ``k`` None for its defaults, else that fixed K; ``fill`` other than ``"auto"``
+    only for the solvers of :data:`WITH_FILL`. Errors are recorded."""
     import nrsfm
     from nrsfm.datasets.synthetic import drop_entries
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d
 
     seq = drop_entries(load_job(job), missing)
-    filled = {"fill": fill} if method in WITH_FILL and fill != "auto" else {}
+    filled = {} if fill == "auto" else {"fill": fill}
     row = {"sequence": seq.name, "method": method, "K": "default" if k is None else k, "missing": missing, **filled}
     t0 = time.perf_counter()
     try:

@@ -72,6 +72,19 @@ def _reference(seq: Sequence) -> Reconstruction | NRSfMError:
     return dataclasses.replace(rec, runtime_s=time.perf_counter() - t0, params=dataclasses.asdict(params))
 
 
+def _kept_reference(seq: Sequence) -> Reconstruction | NRSfMError:
+    """The reference this process keeps for ``seq``'s tracks (:func:`~nrsfm.solvers.starts.remembered_solution`),
+    else :func:`_reference`, kept where it succeeded."""
+    from nrsfm.solvers.starts import remember_solution, remembered_solution
+
+    reference = remembered_solution(seq, REFERENCE_SOLVER)
+    if reference is None:
+        reference = _reference(seq)
+        if not isinstance(reference, NRSfMError):
+            remember_solution(seq, REFERENCE_SOLVER, reference)
+    return reference
+
+
 def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction | None:
     """``solve_k(k)``, None where it raised :class:`~nrsfm.errors.SolverError`."""
     try:
@@ -154,16 +167,11 @@ def fill_from_reference(seq: Sequence) -> Sequence:
     """``seq`` with its missing points filled by :data:`REFERENCE_SOLVER`'s reconstruction at its defaults
     (:func:`fill_missing`), solved once per tracks and kept (:func:`~nrsfm.solvers.starts.remember_solution`);
     raises the reference's :class:`~nrsfm.errors.NRSfMError` where it refuses the tracks."""
-    from nrsfm.solvers.starts import remember_solution, remembered_solution
-
     if seq.is_complete:
         return seq
-    reference = remembered_solution(seq, REFERENCE_SOLVER)
-    if reference is None:
-        reference = _reference(seq)
-        if isinstance(reference, NRSfMError):
-            raise reference
-        remember_solution(seq, REFERENCE_SOLVER, reference)
+    reference = _kept_reference(seq)
+    if isinstance(reference, NRSfMError):
+        raise reference
     return fill_missing(seq, reference.points_3d)
 
 
@@ -200,16 +208,16 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
     if not as_given:
         require_visible_points(seq, solver)
     reference, recs = remembered_solution(seq, REFERENCE_SOLVER), None
-    if reference is None:
-        if as_given:
-            reference, *recs = Parallel()([delayed(_reference)(seq), *solves(seq)])
-        else:
-            reference = _reference(seq)
-        if isinstance(reference, NRSfMError):
-            rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
-            rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {reference})")
-            return rec
-        remember_solution(seq, REFERENCE_SOLVER, reference)
+    if reference is None and as_given:  # the reference in the same batch as the K solves
+        reference, *recs = Parallel()([delayed(_reference)(seq), *solves(seq)])
+        if not isinstance(reference, NRSfMError):
+            remember_solution(seq, REFERENCE_SOLVER, reference)
+    elif reference is None:  # the K solves need its fill first
+        reference = _kept_reference(seq)
+    if isinstance(reference, NRSfMError):
+        rec = _solve_fixed(solver, seq, dataclasses.replace(params, k_rule=fallback_rule))
+        rec.info.update(k_rule=f"{fallback_rule} (the agreement rule's reference failed: {reference})")
+        return rec
     if recs is None:
         recs = Parallel()(solves(seq if as_given else fill_missing(seq, reference.points_3d)))
     rec, dist = _keep(list(ks), recs, reference.points_3d)
