@@ -1,4 +1,4 @@
-"""CSF2's automatic K with other references: EM-PND (the default), PR, and their consensus means.
+"""CSF2's automatic K with other references: EM-PND (the default), PR, SPM, and weighted means of them.
 
     OMP_NUM_THREADS=1 python -m benchmarks.studies.k_reference [--root DIR] [--jobs N] [--missing 0,0.2]
         [--k-max 12] [--out DIR] [--rerun] [--no-progress]
@@ -7,9 +7,10 @@ The agreement rule (:mod:`nrsfm.solvers.kselect`) keeps the largest K whose CSF2
 tolerance of the least e3D to a reference that needs no K. This study asks whether another reference or
 tolerance picks a better K. Per sequence of the tuning set (the CMU files) and of the validation set of
 :mod:`benchmarks.defaults` (each ``--missing`` ratio on the validation set; the CMU files complete), one cell
-solves CSF2 at every fixed K of that benchmark, EM-PND and PR at their defaults, and measures each K's
-distance to four references: EM-PND, PR, the consensus mean ``a * EM-PND + (1 - a) * PR``
-(:func:`nrsfm.solvers.consensus.average_reconstructions`) at the solver's weight a = 0.85 and at 0.5. For every
+solves CSF2 at every fixed K of that benchmark, EM-PND, PR and SPM at their defaults, and measures each K's
+distance to the references of :data:`REFERENCES`: each solver alone and weighted means of them
+(:func:`nrsfm.solvers.consensus.average_reconstructions`; the consensus solver's mean of EM-PND and PR at its
+weight 0.85). For every
 (reference, tolerance 0, 5 or 10%) rule the table counts the sequences where the chosen K is within 10% of the
 best fixed K (an oracle, chosen with the ground truth) and gives the worst ratio. A rule qualifies only by the
 tuning set's column; the validation columns then say how it holds. Cells are saved and resumed as in
@@ -31,13 +32,15 @@ from benchmarks.common import code_hash, markdown_table, run_cells_from_args, ru
 
 log = logging.getLogger("benchmarks.studies.k_reference")
 
-#: The references: name -> EM-PND's weight in the mean with PR (1: EM-PND alone, 0: PR alone).
-REFERENCES = {"empnd": 1.0, "pr": 0.0, "consensus 0.85": 0.85, "consensus 0.5": 0.5}
+#: The references: name -> the solvers' weights in the mean (one solver: that solver's reconstruction).
+REFERENCES = {"empnd": {"empnd": 1.0}, "pr": {"pr": 1.0}, "spm": {"spm": 1.0},
+              "consensus 0.85": {"empnd": 0.85, "pr": 0.15}, "consensus 0.5": {"empnd": 0.5, "pr": 0.5},
+              "empnd + spm": {"empnd": 0.5, "spm": 0.5}}
 TOLERANCES = (0.0, 0.05, 0.1)
 
 
 def run_one(job: str, tuning: bool, missing: float, k_max: int) -> dict:
-    """CSF2 at every fixed K, EM-PND and PR on one sequence (a CMU file or stand-in of the tuning set, or a
+    """CSF2 at every fixed K, EM-PND, PR and SPM on one sequence (a CMU file or stand-in of the tuning set, or a
     validation job): each K's e3D to the ground truth and to every reference of :data:`REFERENCES`. Errors are
     recorded, never raised."""
     import nrsfm
@@ -51,10 +54,10 @@ def run_one(job: str, tuning: bool, missing: float, k_max: int) -> dict:
     seq = drop_entries(load_benchmark_sequence(job) if tuning else load_job(job), missing)
     row = {"sequence": seq.name, "missing": missing}
     try:
-        em, pr = nrsfm.solve(seq, "empnd"), nrsfm.solve(seq, "pr")
+        solved = {m: nrsfm.solve(seq, m) for m in ("empnd", "pr", "spm")}
     except NRSfMError as exc:
         return {**row, "status": "not run", "why": str(exc)}
-    refs = {n: average_reconstructions([em, pr], [a, 1 - a])[0] for n, a in REFERENCES.items()}
+    refs = {n: average_reconstructions([solved[m] for m in w], list(w.values()))[0] for n, w in REFERENCES.items()}
     truth, dist = {}, {n: {} for n in refs}
     for k in range(1, k_cap(seq.n_frames, seq.n_points, k_max) + 1):
         try:
