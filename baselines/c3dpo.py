@@ -23,6 +23,15 @@ of 1,249,280 samples with the lr divided by 10 after epochs 60 and 80: about 110
 (:data:`PAPER_ITERATIONS`); :class:`C3DPOConfig` scales the milestones with ``iterations``. Weights start as in
 their code: 1x1 convolutions normal(0, 0.01), biases 0, batch-norm scales uniform(0, 1).
 
+The authors' loader as it ran (``repeat``): their dataset draws each sample's index with NumPy's global generator
+inside the data-loader workers (``rand_sample``), and the PyTorch they pinned (1.1) forked its 8 workers
+(``num_workers: 8``) with the same NumPy state (PyTorch seeds NumPy per worker only from 1.9). Worker ``w`` builds
+batches ``w, w + 8, ...``, so every batch came 8 times in a row, each time with fresh augmentation and random
+rotations (drawn by the model, not the workers). ``repeat = 8`` trains that way: each drawn minibatch is used for
+8 consecutive iterations. The same state also replayed one epoch's draws in every epoch (the workers are forked
+anew each epoch), which restricts the data to about 156,000 draws; that part is not reproduced (a smaller training
+set alone left the error unchanged, ``benchmarks/RESULTS.md``).
+
 Inputs as the authors': keypoints centred on the visible ones, every frame divided by one scale (the benchmark
 harness uses the training frames' median xy norm), so that a frame's size stays a cue; dividing each frame by its
 own xy norm, as PRN's inputs are, makes the same body change size with the viewpoint, which a linear shape basis
@@ -71,6 +80,8 @@ class C3DPOConfig:
             and 8/9 of ``iterations`` (epochs 60 and 80 of 90).
         optimizer: ``"sgd"`` (the authors' Human3.6M choice, with ``momentum``) or ``"adam"`` (their code's
             other breed: betas 0.9 and 0.999, the same lr and weight decay).
+        repeat: each drawn minibatch is used for this many consecutive iterations (module docstring: 8 is how
+            the authors' loader ran; 1 draws a new minibatch every iteration).
         precision: ``"fp32"``, or ``"bf16"``: the two trunks (almost all of the arithmetic) run under bfloat16
             autocast, the heads, the basis, the rotations and the losses in float32 (on CPUs with AVX-512 BF16
             or AMX, and on GPUs, several times faster; the weights and the optimiser stay float32).
@@ -90,22 +101,32 @@ class C3DPOConfig:
     momentum: float = 0.9
     weight_decay: float = 5e-4
     optimizer: str = "sgd"
+    repeat: int = 1
     precision: str = "fp32"
     seed: int = 0
     device: str = "auto"
     checkpoint_every: int = 2000
 
     def __post_init__(self) -> None:
-        if self.basis < 1 or self.width < 4 or self.n_layers < 0 or self.iterations < 1 or self.batch < 2:
+        if self.basis < 1 or self.width < 4 or self.n_layers < 0 or self.iterations < 1 or self.batch < 2 \
+                or self.repeat < 1:
             raise ValidationError(f"C3DPOConfig: expected basis >= 1, width >= 4, n_layers >= 0, iterations >= 1, "
-                                  f"batch >= 2, got {self.basis}, {self.width}, {self.n_layers}, {self.iterations}, "
-                                  f"{self.batch}")
+                                  f"batch >= 2, repeat >= 1, got {self.basis}, {self.width}, {self.n_layers}, "
+                                  f"{self.iterations}, {self.batch}, {self.repeat}")
         if not self.keypoint_rescale > 0:
             raise ValidationError(f"C3DPOConfig: expected keypoint_rescale > 0, got {self.keypoint_rescale}")
         if self.optimizer not in ("sgd", "adam"):
             raise ValidationError(f"C3DPOConfig: expected optimizer 'sgd' or 'adam', got {self.optimizer!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValidationError(f"C3DPOConfig: expected precision 'fp32' or 'bf16', got {self.precision!r}")
+
+    def key(self) -> dict:
+        """The settings as a dict (a checkpoint's or a cache's key); ``repeat`` only where it is not 1, so that
+        models saved before the setting existed keep their key."""
+        out = dataclasses.asdict(self)
+        if self.repeat == 1:
+            del out["repeat"]
+        return out
 
     def lr_at(self, iteration: int) -> float:
         drops = sum(iteration >= round(self.iterations * f) for f in (60 / 90, 80 / 90))
@@ -354,16 +375,17 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     opt = make_optimizer(model, config)
     out = Path(out_dir) if out_dir is not None else None
     ckpt = out / "checkpoint.pt" if out is not None else None
-    start, history, monitored = 0, [], []
+    start, history, monitored, rows = 0, [], [], None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     if ckpt is not None and resume and ckpt.exists():
         state = torch.load(ckpt, map_location=device, weights_only=False)
-        if state["config"] != dataclasses.asdict(config):
+        if state["config"] != config.key():
             raise ValidationError(f"{ckpt}: the checkpoint was made with another configuration")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start, history, monitored = state["iteration"], state["history"], state.get("monitor", [])
+        rows = state.get("rows")
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"].cpu())
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
@@ -373,7 +395,9 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
     t0 = time.perf_counter()
     bar = tqdm(total=config.iterations, initial=start, desc="C3DPO", disable=not progress, mininterval=2.0)
     for it in range(start, config.iterations):
-        loss_rep, loss_can = step(rng.integers(0, len(inputs), config.batch), config.lr_at(it))
+        if rows is None or it % config.repeat == 0:
+            rows = rng.integers(0, len(inputs), config.batch)
+        loss_rep, loss_can = step(rows, config.lr_at(it))
         loss = loss_rep + loss_can
         logged = (it + 1) % 100 == 0 or it == start
         at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations
@@ -390,15 +414,15 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
             model.train()
         if ckpt is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
-                         "history": history, "monitor": monitored, "config": dataclasses.asdict(config),
+                         "history": history, "monitor": monitored, "config": config.key(), "rows": rows,
                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
               "cuda_graph": cuda_graph, "compile": compile, "history": history, "monitor": monitored}
     if out is not None:
-        atomic_save({"model": model.state_dict(), "config": dataclasses.asdict(config), "n_points": inputs.shape[1]},
-              out / "model.pt")
-        (out / "train.json").write_text(json.dumps({"config": dataclasses.asdict(config), **record}, indent=2))
+        atomic_save({"model": model.state_dict(), "config": config.key(), "n_points": inputs.shape[1]},
+                    out / "model.pt")
+        (out / "train.json").write_text(json.dumps({"config": config.key(), **record}, indent=2))
     return model.eval(), record
 
 

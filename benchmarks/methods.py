@@ -231,9 +231,10 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     iterations = ctx.c3dpo_iterations or max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))
     config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, keypoint_rescale=ctx.c3dpo_rescale,
                          optimizer=ctx.c3dpo_optimizer, lr=ctx.c3dpo_lr, precision=ctx.c3dpo_precision,
+                         repeat=ctx.c3dpo_repeat,
                          seed=ctx.seed, device=ctx.device,
                          checkpoint_every=max(100, iterations // 20))
-    cache = ctx.cache_dir("C3DPO", {"config": dataclasses.asdict(config), "data": split.tag,
+    cache = ctx.cache_dir("C3DPO", {"config": config.key(), "data": split.tag,
                                     "input": split.input_type,
                                     "inputs": ctx.c3dpo_inputs})
     key = f"C3DPO ({split.input_type})"

@@ -83,6 +83,7 @@ class RunContext:
     c3dpo_cuda_graph: bool = True  # on a GPU, replay C3DPO's iterations as CUDA graphs (False: op by op)
     c3dpo_compile: bool = False  # compile C3DPO's forward and backward passes with torch.compile
     c3dpo_optimizer: str = "sgd"  # the authors' Human3.6M breed; "adam" is their code's other
+    c3dpo_repeat: int = 1  # each C3DPO minibatch used for this many iterations (8: the authors' loader as it ran)
     c3dpo_inputs: str = "centred"  # the authors' (centred, one global scale); "prn": each frame by its xy norm
     missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
     missing_in_loss: bool = True  # PRN rows: dropped points weigh 0 in the data term too (False: input only)

@@ -66,6 +66,46 @@ def test_c3dpo_trains_resumes_and_keeps_the_input_coordinates(tmp_path):
                     progress=False)
 
 
+def test_repeat_uses_each_minibatch_for_that_many_iterations_and_resumes_inside_a_group(tmp_path, monkeypatch):
+    seq = lowrank_sequence(60, 12, 2, seed=1)
+    x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    w = np.ones(x.shape[:2])
+    config = dataclasses.replace(SMALL, iterations=12, checkpoint_every=5, repeat=4)
+    seen = []
+    call = TrainStep.__call__
+
+    def spy(self, idx, lr):
+        seen.append(np.array(idx))
+        return call(self, idx, lr)
+
+    monkeypatch.setattr(TrainStep, "__call__", spy)
+    whole, _ = train_c3dpo(x, w, config, tmp_path / "whole", progress=False)
+    groups = [seen[i:i + 4] for i in range(0, 12, 4)]
+    assert all(np.array_equal(g[0], r) for g in groups for r in g)  # four iterations on one minibatch
+    assert not np.array_equal(groups[0][0], groups[1][0])
+    # interrupted in iteration 8; the last checkpoint (after 5) falls inside the second group
+    seen.clear()
+
+    def interrupted(self, idx, lr):
+        if len(seen) == 7:
+            raise KeyboardInterrupt
+        return spy(self, idx, lr)
+
+    monkeypatch.setattr(TrainStep, "__call__", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_c3dpo(x, w, config, tmp_path / "cut", progress=False)
+    seen.clear()
+    monkeypatch.setattr(TrainStep, "__call__", spy)
+    resumed, record = train_c3dpo(x, w, config, tmp_path / "cut", progress=False)
+    assert record["iterations_run"] == 7
+    assert np.array_equal(seen[0], groups[1][0]) and np.array_equal(seen[-1], groups[2][0])
+    for a, b in zip(whole.state_dict().values(), resumed.state_dict().values()):
+        torch.testing.assert_close(a, b)
+    assert "repeat" not in SMALL.key() and config.key()["repeat"] == 4  # old caches keep their key
+    with pytest.raises(ValueError, match="repeat >= 1"):
+        dataclasses.replace(SMALL, repeat=0)
+
+
 def test_a_diverging_training_is_stopped_with_a_clear_error_and_writes_no_model(tmp_path):
     seq = lowrank_sequence(200, 12, 2, seed=0)
     x = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
