@@ -192,7 +192,8 @@ def test_all_runs_the_chosen_tables_and_summarises(tmp_path, capsys, monkeypatch
 
 
 @pytest.mark.parametrize("argv, message", [(["--c3dpo-lr", "0"], "--c3dpo-lr"),
-                                           (["--c3dpo-batch", "1"], "--c3dpo-batch")])
+                                           (["--c3dpo-batch", "1"], "--c3dpo-batch"),
+                                           (["--c3dpo-repeat", "0"], "--c3dpo-repeat")])
 def test_table1_refuses_bad_c3dpo_settings(tmp_path, capsys, argv, message):
     assert table1.main(argv + ["--quick", "--out", str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
