@@ -27,6 +27,7 @@ import os
 import sys
 import time
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -168,8 +169,9 @@ def _columns(data: str, results: dict) -> list[str]:
     return acts
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.table1", description=__doc__.split("\n\n")[0])
+def parser(prog: str = "python -m benchmarks.table1", description: str | None = None) -> argparse.ArgumentParser:
+    """The command line of this table (also read by studies that evaluate its rows)."""
+    p = argparse.ArgumentParser(prog=prog, description=description or __doc__.split("\n\n")[0])
     p.add_argument("--data", choices=["synthetic", "h36m"], default=None,
                    help="default: h36m when --root is given, else synthetic")
     p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA); implies --data h36m")
@@ -215,14 +217,37 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
                                                         "qualitative, per-action bars, training curves")
     add_training_arguments(p)
+    return p
+
+
+def parse_args(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``argv`` read with ``p`` (:func:`parser`); ``--data`` is h36m when ``--root`` is given, else synthetic."""
     args = p.parse_args(argv)
     if args.data is None:
         args.data = "h36m" if args.root else "synthetic"
-    return run_table("table1", _run, args)
+    return args
 
 
-def _run(args: argparse.Namespace) -> int:
-    t_start = time.perf_counter()
+def main(argv: list[str] | None = None) -> int:
+    return run_table("table1", _run, parse_args(parser(), argv))
+
+
+@dataclass
+class Rows:
+    """What :func:`run_rows` computed: the data, the run's options, and per (row, input) the test predictions
+    `(F, P, 3)` per test sequence (PRN's per-frame units) and the per-action errors, or why a cell did not run."""
+
+    splits: dict[str, Split]
+    desc: dict
+    ctx: RunContext
+    names: list[str]
+    predictions: dict[tuple[str, str], list[np.ndarray]]
+    results: dict[tuple[str, str], dict[str, tuple[float, int]]]
+    not_run: dict[tuple[str, str], str]
+
+
+def run_rows(args: argparse.Namespace) -> Rows:
+    """Train (or read back from the cache) and evaluate the rows of ``args`` on its inputs."""
     inputs = INPUTS if args.input == "all" else (args.input,)
     if args.iterations is not None and args.iterations < 1:
         raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
@@ -254,21 +279,27 @@ def _run(args: argparse.Namespace) -> int:
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
-    results: dict[tuple[str, str], dict[str, tuple[float, int]]] = {}
-    predictions: dict[tuple[str, str], list[np.ndarray]] = {}
-    not_run: dict[tuple[str, str], str] = {}
+    rows = Rows(splits, desc, ctx, names, {}, {}, {})
     for inp, split in splits.items():
         for name in names:
             m = registry[name]
             if inp not in m.inputs:
-                not_run[(name, inp)] = f"{name} does not take {inp} input"
+                rows.not_run[(name, inp)] = f"{name} does not take {inp} input"
                 continue
             log.info("training/evaluating %s on %s ...", name, inp)
             preds = m.run(split, ctx)
-            results[(name, inp)] = evaluate(preds, split.test_truth)
-            if args.plots:
-                predictions[(name, inp)] = preds
+            rows.results[(name, inp)] = evaluate(preds, split.test_truth)
+            rows.predictions[(name, inp)] = preds
+    return rows
 
+
+def _run(args: argparse.Namespace) -> int:
+    t_start = time.perf_counter()
+    inputs = INPUTS if args.input == "all" else (args.input,)
+    rows_run = run_rows(args)
+    splits, desc, ctx, names = rows_run.splits, rows_run.desc, rows_run.ctx, rows_run.names
+    results, predictions, not_run = rows_run.results, rows_run.predictions, rows_run.not_run
+    out, iterations, registry = ctx.out_dir, ctx.iterations, methods()
     cols = _columns(args.data, {k: v for k, v in results.items()})
     rows_csv, md = [], []
     header = ["Method"] + cols + ["Avg", "paper Avg"]

@@ -500,3 +500,48 @@ def test_checkpoint_progress_reads_where_a_training_got_to(tmp_path):
     assert checkpoint_progress(tmp_path) == {"iteration": 300, "history": history[-2:], "monitor": []}
     (tmp_path / "cache" / "PRN-FCN-1" / "checkpoint.pt").write_bytes(b"partial")  # being replaced
     assert "checkpoint_error" in checkpoint_progress(tmp_path)
+
+
+def test_error_parts_split_orientation_from_shape():
+    """A shape turned out of the image plane errs only in orientation (angle and axis recovered); a depth-flipped
+    one not at all (PRN's per-frame sign); a shrunken one in shape, and PA-MPJPE forgives the scale."""
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.studies.error_parts import error_parts_per_frame
+    from nrsfm.datasets.synthetic import human_sequences
+
+    gt = human_sequences(["S1"], n_frames=10, takes=1, seed=0, motions=("walking",))[0].points_3d
+    yaw = Rotation.from_rotvec([0.0, np.radians(20.0), 0.0]).as_matrix()
+    turned = error_parts_per_frame(gt @ yaw.T, gt)
+    assert turned["mpjpe"].min() > 10.0
+    np.testing.assert_allclose(turned["rotated"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(turned["angle"], 20.0, atol=1e-6)
+    np.testing.assert_allclose(np.abs(turned["axes"]), np.tile([0.0, 20.0, 0.0], (len(gt), 1)), atol=1e-6)
+    flipped = error_parts_per_frame(gt * [1.0, 1.0, -1.0], gt)
+    np.testing.assert_allclose(flipped["mpjpe"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(flipped["rotated"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(flipped["pa_mpjpe"], 0.0, atol=1e-6)
+    small = error_parts_per_frame(0.8 * gt, gt)
+    np.testing.assert_allclose(small["rotated"], small["mpjpe"], rtol=1e-6)
+    np.testing.assert_allclose(small["pa_mpjpe"], 0.0, atol=1e-6)
+
+
+def test_error_parts_runs_the_table_rows_and_writes_its_table(tmp_path, capsys, monkeypatch):
+    from benchmarks import table1
+    from benchmarks.studies import error_parts
+
+    monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
+    argv = ["--iterations", "12", "--out", str(tmp_path), "--no-progress", "--methods", "PRN-FCN,GT 3D"]
+    assert error_parts.main(argv) == 0
+    text = (tmp_path / "error_parts.md").read_text()
+    assert "| PRN-FCN | gt-ortho |" in text and "| GT 3D | gt-ortho |" in text
+    record = json.loads((tmp_path / "error_parts.json").read_text())
+    first = record["rows"][0]
+    assert first["after rotation (mm)"] <= first["MPJPE (mm)"] and first["PA-MPJPE (mm)"] <= first["MPJPE (mm)"]
+    # the table's own numbers: the same rows read back from the cache
+    assert table1.main(argv) == 0
+    avg = {r["method"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in
+           json.loads((tmp_path / "table1.json").read_text())["results"]}
+    assert first["MPJPE (mm)"] == pytest.approx(avg[first["row"]], rel=1e-9)
+    assert error_parts.main(argv[:-1] + ["nonesuch"]) == 2
+    assert "--methods: expected names" in capsys.readouterr().err
