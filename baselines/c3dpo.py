@@ -435,9 +435,12 @@ def load_c3dpo(path: str | os.PathLike, device: str = "auto") -> C3DPO:
 
 
 @torch.no_grad()
-def predict_c3dpo(model: C3DPO, inputs: np.ndarray, weights: np.ndarray, batch: int = 4096) -> np.ndarray:
+def predict_c3dpo(model: C3DPO, inputs: np.ndarray, weights: np.ndarray, batch: int = 4096,
+                  replace_keypoints_with_input: bool = True) -> np.ndarray:
     """`(N, P, 3)` shapes for `(N, P, 2)` normalised keypoints: the input's image coordinates where a point is
-    visible (the network's reprojection elsewhere) and the network's depth."""
+    visible (the network's reprojection elsewhere) and the network's depth; with ``replace_keypoints_with_input``
+    False (the authors' option of that name) the network's camera-frame shapes ``R X`` as they are, whose image
+    coordinates show how well the shapes fit the input."""
     model.eval()
     device = next(model.parameters()).device
     out = []
@@ -447,6 +450,7 @@ def predict_c3dpo(model: C3DPO, inputs: np.ndarray, weights: np.ndarray, batch: 
         vis = torch.as_tensor(v > 0, dtype=torch.float32, device=device)
         rescale = model.config.keypoint_rescale
         cam = model(w * rescale, vis)["camera"] / rescale  # (n, 3, P)
-        xy = vis[:, None] * w + (1 - vis[:, None]) * cam[:, :2]
+        keep = vis[:, None] if replace_keypoints_with_input else torch.zeros_like(vis[:, None])
+        xy = keep * w + (1 - keep) * cam[:, :2]
         out.append(torch.cat([xy, cam[:, 2:]], dim=1).transpose(1, 2).double().cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))

@@ -199,12 +199,15 @@ def c3dpo_inputs(seqs: list, unit: float, inputs: str = "centred") -> tuple[np.n
     return np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None] / unit, w
 
 
-def c3dpo_predict(model, seq, unit: float, inputs: str = "centred") -> np.ndarray:
-    """`(F, P, 3)` shapes of C3DPO ``model`` for ``seq``, in PRN's per-frame units (as the harness scores them)."""
+def c3dpo_predict(model, seq, unit: float, inputs: str = "centred", replace_keypoints_with_input: bool = True
+                  ) -> np.ndarray:
+    """`(F, P, 3)` shapes of C3DPO ``model`` for ``seq``, in PRN's per-frame units (as the harness scores them;
+    ``replace_keypoints_with_input``: :func:`baselines.c3dpo.predict_c3dpo`)."""
     from baselines.c3dpo import predict_c3dpo
     from prn.data import normalize_2d
 
-    pred = predict_c3dpo(model, *c3dpo_inputs([seq], unit, inputs))
+    pred = predict_c3dpo(model, *c3dpo_inputs([seq], unit, inputs),
+                         replace_keypoints_with_input=replace_keypoints_with_input)
     return pred if inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][:, None, None]
 
 

@@ -6,7 +6,8 @@ Runs the rows of :mod:`benchmarks.table1` (default ``PRN-FCN,GT 3D,C3DPO``) with
 models it cached are read back, and splits each row's test error, per frame, under PRN's protocol (shapes centred
 on the joints' mean, depth sign chosen per frame, millimetres):
 
-- **MPJPE**, the table's number;
+- **MPJPE**, the table's number, and the mean distance of its image coordinates and of its depths alone
+  (a row that keeps the input's image coordinates, as C3DPO does, errs in depth only);
 - **after rotation**: the MPJPE once the prediction is turned by the proper rotation that fits it best to the
   ground truth (orthogonal Procrustes, no scale): what is left is the error of the shape itself;
 - the **angle** of that rotation (median over frames) and its mean absolute components about the image axes:
@@ -30,30 +31,31 @@ import numpy as np
 from benchmarks.common import markdown_table, run_metadata, run_table, write_json
 
 #: The columns of the output table (after the row and input).
-COLUMNS = ("frames", "MPJPE (mm)", "after rotation (mm)", "orientation share", "median angle (deg)",
-           "mean |pitch| / |yaw| / |roll| (deg)", "PA-MPJPE (mm)")
+COLUMNS = ("frames", "MPJPE (mm)", "mean |xy| / |depth| error (mm)", "after rotation (mm)", "orientation share",
+           "median angle (deg)", "mean |pitch| / |yaw| / |roll| (deg)", "PA-MPJPE (mm)")
 
 
 def error_parts_per_frame(pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:
-    """Per frame of `(F, P, 3)` predictions and ground truth (mm): ``mpjpe``, ``rotated`` (after the best proper
-    rotation), ``angle`` (its angle, degrees), ``axes`` `(F, 3)` (its rotation vector about the image x, y and
-    optical axes, degrees) and ``pa_mpjpe``, all `(F,)` but ``axes``."""
+    """Per frame of `(F, P, 3)` predictions and ground truth (mm): ``mpjpe``, ``xy`` and ``depth`` (the mean
+    distance of the image coordinates and of the depths alone), ``rotated`` (after the best proper rotation),
+    ``angle`` (its angle, degrees), ``axes`` `(F, 3)` (its rotation vector about the image x, y and optical axes,
+    degrees) and ``pa_mpjpe``, all `(F,)` but ``axes``."""
     from scipy.spatial.transform import Rotation
 
     from nrsfm.geometry import nearest_rotation
-    from nrsfm.metrics import mpjpe_prn_per_joint, pa_mpjpe_per_frame
+    from nrsfm.metrics import pa_mpjpe_per_frame
 
     pred, gt = np.asarray(pred, dtype=float), np.asarray(gt, dtype=float)
-    joint = mpjpe_prn_per_joint(pred, gt)  # (F, P): centred, depth sign chosen
     p, g = pred - pred.mean(axis=1, keepdims=True), gt - gt.mean(axis=1, keepdims=True)
     flip = np.array([1.0, 1.0, -1.0])
-    raw = np.linalg.norm(p - g, axis=2).mean(axis=1)
-    flipped = np.linalg.norm(p * flip - g, axis=2).mean(axis=1)
-    p = np.where((raw <= flipped)[:, None, None], p, p * flip)  # the sign mpjpe_prn chose (same tie rule)
+    raw, flipped = (np.linalg.norm((x - g).reshape(len(g), -1), axis=1) for x in (p, p * flip))
+    p = np.where((raw <= flipped)[:, None, None], p, p * flip)  # the depth sign of nrsfm.metrics.mpjpe_prn
     rot = nearest_rotation(np.einsum("fpi,fpj->fij", p, g))  # p @ rot ~ g, det +1
     rotated = np.linalg.norm(p @ rot - g, axis=2).mean(axis=1)
     axes = np.degrees(Rotation.from_matrix(np.swapaxes(rot, 1, 2)).as_rotvec())  # acting on column vectors
-    return {"mpjpe": joint.mean(axis=1), "rotated": rotated, "angle": np.linalg.norm(axes, axis=1), "axes": axes,
+    return {"mpjpe": np.linalg.norm(p - g, axis=2).mean(axis=1), "xy": np.linalg.norm(p[..., :2] - g[..., :2], axis=2).mean(axis=1),
+            "depth": np.abs(p[..., 2] - g[..., 2]).mean(axis=1), "rotated": rotated,
+            "angle": np.linalg.norm(axes, axis=1), "axes": axes,
             "pa_mpjpe": pa_mpjpe_per_frame(p, g)}
 
 
@@ -61,7 +63,8 @@ def summarise(parts: dict[str, np.ndarray]) -> list:
     """One table row (:data:`COLUMNS`) of :func:`error_parts_per_frame`'s output."""
     mpjpe, rotated = float(parts["mpjpe"].mean()), float(parts["rotated"].mean())
     pitch, yaw, roll = np.abs(parts["axes"]).mean(axis=0)
-    return [len(parts["mpjpe"]), mpjpe, rotated, f"{(mpjpe - rotated) / mpjpe:.0%}" if mpjpe > 0 else "-",
+    return [len(parts["mpjpe"]), mpjpe, f"{parts['xy'].mean():.1f} / {parts['depth'].mean():.1f}", rotated,
+            f"{(mpjpe - rotated) / mpjpe:.0%}" if mpjpe > 0 else "-",
             float(np.median(parts["angle"])), f"{pitch:.1f} / {yaw:.1f} / {roll:.1f}", float(parts["pa_mpjpe"].mean())]
 
 

@@ -484,6 +484,22 @@ def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     error, frames = c3dpo_fit.mpjpe_of(model, seqs[:1], c3dpo_unit(seqs), "centred")
     assert frames == seqs[0].n_frames
     assert error == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
+    # the shapes' own image coordinates: the depth the table scores, but not the input's xy
+    import torch
+
+    from baselines.c3dpo import _centre
+    from benchmarks.methods import c3dpo_inputs, c3dpo_predict
+
+    unit = c3dpo_unit(seqs)
+    raw = c3dpo_predict(model, seqs[0], unit, "centred", replace_keypoints_with_input=False)
+    np.testing.assert_allclose(raw[..., 2], pred[..., 2], rtol=1e-9)
+    assert not np.allclose(raw[..., :2], pred[..., :2])
+    x, v = c3dpo_inputs(seqs[:1], unit, "centred")  # GT-ortho: the 2D is the ground truth's xy, so mm = unit
+    w = torch.as_tensor(_centre(x, v), dtype=torch.float32)
+    with torch.no_grad():
+        cam = model(w, torch.as_tensor(v, dtype=torch.float32))["camera"]
+    expected = float((cam[:, :2] - w).norm(dim=1).mean()) * unit
+    assert c3dpo_fit.reprojection_of(model, seqs[:1], unit, "centred") == pytest.approx(expected, rel=1e-4)
     assert c3dpo_fit.main([str(tmp_path / "none.pt"), "--root", str(tmp_path)]) == 2
     assert "no such model file" in capsys.readouterr().err
 
@@ -521,6 +537,9 @@ def test_error_parts_split_orientation_from_shape():
     np.testing.assert_allclose(flipped["mpjpe"], 0.0, atol=1e-9)
     np.testing.assert_allclose(flipped["rotated"], 0.0, atol=1e-6)
     np.testing.assert_allclose(flipped["pa_mpjpe"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(turned["xy"] > 0, True)  # a turn out of the image plane moves xy and depth
+    depth_only = error_parts_per_frame(gt + [0.0, 0.0, 30.0] * (np.arange(gt.shape[1]) % 2 * 2 - 1)[:, None], gt)
+    np.testing.assert_allclose(depth_only["xy"], 0.0, atol=1e-9)
     small = error_parts_per_frame(0.8 * gt, gt)
     np.testing.assert_allclose(small["rotated"], small["mpjpe"], rtol=1e-6)
     np.testing.assert_allclose(small["pa_mpjpe"], 0.0, atol=1e-6)
