@@ -564,3 +564,17 @@ def test_error_parts_runs_the_table_rows_and_writes_its_table(tmp_path, capsys, 
     assert first["MPJPE (mm)"] == pytest.approx(avg[first["row"]], rel=1e-9)
     assert error_parts.main(argv[:-1] + ["nonesuch"]) == 2
     assert "--methods: expected names" in capsys.readouterr().err
+
+
+def test_c3dpo_fit_basis_floor_is_zero_for_rotated_copies_of_one_shape():
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.studies.c3dpo_fit import basis_floor
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(17, 3)) * 300.0
+    rots = Rotation.random(40, random_state=1).as_matrix()
+    assert basis_floor(np.einsum("pj,fij->fpi", base, rots), 1) == pytest.approx((0.0, 0.0), abs=1e-6)
+    moving = np.einsum("fpj,fij->fpi", base + rng.normal(size=(40, 17, 3)) * 30.0, rots)
+    one, ten = basis_floor(moving, 1), basis_floor(moving, 10)
+    assert one[0] > ten[0] > 0.0 and one[1] > ten[1] > 0.0 and ten[1] <= ten[0]
