@@ -235,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
 @dataclass
 class Rows:
     """What :func:`run_rows` computed: the data, the run's options, and per (row, input) the test predictions
-    `(F, P, 3)` per test sequence (PRN's per-frame units) and the per-action errors, or why a cell did not run."""
+    `(F, P, 3)` per test sequence (PRN's per-frame units; when asked for) and the per-action errors, or why a cell
+    did not run."""
 
     splits: dict[str, Split]
     desc: dict
@@ -246,8 +247,9 @@ class Rows:
     not_run: dict[tuple[str, str], str]
 
 
-def run_rows(args: argparse.Namespace) -> Rows:
-    """Train (or read back from the cache) and evaluate the rows of ``args`` on its inputs."""
+def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
+    """Train (or read back from the cache) and evaluate the rows of ``args`` on its inputs; the test predictions
+    are kept in :attr:`Rows.predictions` only with ``keep_predictions``."""
     inputs = INPUTS if args.input == "all" else (args.input,)
     if args.iterations is not None and args.iterations < 1:
         raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
@@ -289,15 +291,16 @@ def run_rows(args: argparse.Namespace) -> Rows:
             log.info("training/evaluating %s on %s ...", name, inp)
             preds = m.run(split, ctx)
             rows.results[(name, inp)] = evaluate(preds, split.test_truth)
-            rows.predictions[(name, inp)] = preds
+            if keep_predictions:
+                rows.predictions[(name, inp)] = preds
     return rows
 
 
 def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
-    inputs = INPUTS if args.input == "all" else (args.input,)
-    rows_run = run_rows(args)
+    rows_run = run_rows(args, keep_predictions=args.plots)
     splits, desc, ctx, names = rows_run.splits, rows_run.desc, rows_run.ctx, rows_run.names
+    inputs = tuple(splits)
     results, predictions, not_run = rows_run.results, rows_run.predictions, rows_run.not_run
     out, iterations, registry = ctx.out_dir, ctx.iterations, methods()
     cols = _columns(args.data, {k: v for k, v in results.items()})

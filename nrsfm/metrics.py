@@ -176,11 +176,10 @@ def mpjpe_prn_per_frame(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["pe
     return mpjpe_prn_per_joint(pred, gt, z_sign=z_sign).mean(axis=1)
 
 
-def mpjpe_prn_per_joint(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["per_frame", "none"] = "per_frame"
-                        ) -> np.ndarray:
-    """`(F, P)` joint errors (mm) under PRN's Human3.6M protocol (:func:`mpjpe_prn`): each frame centred on all its
-    joints and its z sign chosen on all of them, so a subset's mean error (e.g. the joints missing from the input)
-    is measured in the frame the full MPJPE uses."""
+def prn_frames(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["per_frame", "none"] = "per_frame"
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """`(F, P, 3)` predictions and ground truth as PRN's Human3.6M protocol (:func:`mpjpe_prn`) compares them:
+    each frame centred on all its joints, the prediction's z sign chosen per frame on all of them."""
     pred, gt = _check_pair(pred, gt)
     pred, gt = _centre(pred), _centre(gt)
     if z_sign == "per_frame":
@@ -189,6 +188,15 @@ def mpjpe_prn_per_joint(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["pe
         pred = np.where(keep[:, None, None], pred, _flip_z(pred))
     elif z_sign != "none":
         raise ValidationError(f"z_sign: expected 'per_frame' or 'none', got {z_sign!r}")
+    return pred, gt
+
+
+def mpjpe_prn_per_joint(pred: np.ndarray, gt: np.ndarray, *, z_sign: Literal["per_frame", "none"] = "per_frame"
+                        ) -> np.ndarray:
+    """`(F, P)` joint errors (mm) under PRN's Human3.6M protocol (:func:`mpjpe_prn`): each frame centred on all its
+    joints and its z sign chosen on all of them (:func:`prn_frames`), so a subset's mean error (e.g. the joints
+    missing from the input) is measured in the frame the full MPJPE uses."""
+    pred, gt = prn_frames(pred, gt, z_sign=z_sign)
     return np.linalg.norm(pred - gt, axis=2)
 
 

@@ -43,17 +43,14 @@ def error_parts_per_frame(pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndar
     from scipy.spatial.transform import Rotation
 
     from nrsfm.geometry import nearest_rotation
-    from nrsfm.metrics import pa_mpjpe_per_frame
+    from nrsfm.metrics import pa_mpjpe_per_frame, prn_frames
 
-    pred, gt = np.asarray(pred, dtype=float), np.asarray(gt, dtype=float)
-    p, g = pred - pred.mean(axis=1, keepdims=True), gt - gt.mean(axis=1, keepdims=True)
-    flip = np.array([1.0, 1.0, -1.0])
-    raw, flipped = (np.linalg.norm((x - g).reshape(len(g), -1), axis=1) for x in (p, p * flip))
-    p = np.where((raw <= flipped)[:, None, None], p, p * flip)  # the depth sign of nrsfm.metrics.mpjpe_prn
+    p, g = prn_frames(pred, gt)  # centred, the depth sign chosen per frame
     rot = nearest_rotation(np.einsum("fpi,fpj->fij", p, g))  # p @ rot ~ g, det +1
     rotated = np.linalg.norm(p @ rot - g, axis=2).mean(axis=1)
     axes = np.degrees(Rotation.from_matrix(np.swapaxes(rot, 1, 2)).as_rotvec())  # acting on column vectors
-    return {"mpjpe": np.linalg.norm(p - g, axis=2).mean(axis=1), "xy": np.linalg.norm(p[..., :2] - g[..., :2], axis=2).mean(axis=1),
+    return {"mpjpe": np.linalg.norm(p - g, axis=2).mean(axis=1),
+            "xy": np.linalg.norm(p[..., :2] - g[..., :2], axis=2).mean(axis=1),
             "depth": np.abs(p[..., 2] - g[..., 2]).mean(axis=1), "rotated": rotated,
             "angle": np.linalg.norm(axes, axis=1), "axes": axes,
             "pa_mpjpe": pa_mpjpe_per_frame(p, g)}
@@ -81,7 +78,7 @@ def _run(args: argparse.Namespace) -> int:
     from benchmarks import table1
     from prn.data import denormalize
 
-    rows = table1.run_rows(args)
+    rows = table1.run_rows(args, keep_predictions=True)
     table, per_action = [], {}
     for (name, inp), preds in rows.predictions.items():
         split = rows.splits[inp]
