@@ -100,6 +100,20 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
+def parse_fractions(text: str, option: str) -> list[float]:
+    """``"0,0.2"`` -> ``[0.0, 0.2]``: the comma-separated fractions in [0, 1) of option ``option`` (missing points,
+    dropped entries); anything else raises :class:`nrsfm.errors.ValidationError` saying what was expected."""
+    from nrsfm.errors import ValidationError
+
+    try:
+        out = [float(v) for v in text.split(",")]
+    except ValueError:
+        out = []
+    if not out or not all(0 <= v < 1 for v in out):
+        raise ValidationError(f"{option}: expected comma-separated fractions in [0, 1) such as 0,0.2, got {text!r}")
+    return out
+
+
 def run_cells_from_args(args: argparse.Namespace, cells: Sequence[tuple[str, dict[str, Any], tuple]],
                         fn: Callable[..., Any], out: Path, desc: str) -> tuple[list, int] | None:
     """:func:`run_cells` for a benchmark's command line (``args`` from :func:`add_run_arguments` plus ``--jobs``),

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
+from benchmarks.common import (code_hash, markdown_table, parse_fractions, run_cells_from_args, run_metadata,
+                               write_outputs)
 
 log = logging.getLogger("benchmarks.defaults")
 
@@ -183,9 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         unknown = [m for m in methods if m not in available_solvers()]
         if unknown:
             raise ValueError(f"--methods: expected names among {available_solvers()}, got {', '.join(unknown)}")
-        missing = [float(x) for x in args.missing.split(",")]
-        if not all(0 <= m < 1 for m in missing):
-            raise ValueError(f"--missing: expected fractions in [0, 1), got {args.missing}")
+        missing = parse_fractions(args.missing, "--missing")
         if args.which == "validation":
             folder, jobs = validation_jobs(args.root)
         else:

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import add_training_arguments, markdown_table, run_metadata, run_table, write_csv, write_json
+from benchmarks.common import (add_training_arguments, markdown_table, parse_fractions, run_metadata, run_table,
+                               write_csv, write_json)
 from benchmarks.registry import RunContext, Split, methods
 from benchmarks.table1 import evaluate, load_splits
 from nrsfm.datasets.synthetic import drop_entries
@@ -80,16 +81,6 @@ def _visible_alone(pred: np.ndarray, gt: np.ndarray, vis: np.ndarray) -> np.ndar
     return np.linalg.norm(np.where(keep[:, None, None], pc, flipped) - gc, axis=2)
 
 
-def _ratios(text: str) -> tuple[float, ...]:
-    try:
-        out = tuple(float(r) for r in text.split(","))
-    except ValueError:
-        raise ValidationError(f"--ratios: expected comma-separated fractions such as 0,0.1,0.2, got {text!r}") from None
-    if not out or any(not 0 <= r < 1 for r in out):
-        raise ValidationError(f"--ratios: expected fractions in [0, 1), got {text!r}")
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.table_s1", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", choices=["synthetic", "h36m"], default=None,
@@ -115,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
-    ratios = _ratios(args.ratios)
+    ratios = tuple(parse_fractions(args.ratios, "--ratios"))
     names = [m.strip() for m in args.methods.split(",")]
     for n in names:
         if n not in ROWS:

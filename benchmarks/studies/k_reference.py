@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
+from benchmarks.common import (code_hash, markdown_table, parse_fractions, run_cells_from_args, run_metadata,
+                               write_outputs)
 
 log = logging.getLogger("benchmarks.studies.k_reference")
 
@@ -96,16 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     add_run_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-    try:
-        missing = [float(x) for x in args.missing.split(",")]
-        if not all(0 <= m < 1 for m in missing):
-            raise ValueError
-    except ValueError:
-        print(f"k_reference: error: --missing: expected fractions in [0, 1) such as 0,0.2, got {args.missing!r}",
-              file=sys.stderr)
-        return 2
     t0 = time.perf_counter()
     try:
+        missing = parse_fractions(args.missing, "--missing")
         _, cmu = benchmark_sequences(args.root, None, "k_reference")
         folder, val = validation_jobs(args.root)
     except (NRSfMError, ValueError) as exc:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import markdown_table, run_metadata, write_csv, write_json
+from benchmarks.common import markdown_table, parse_fractions, run_metadata, write_csv, write_json
 
 def drink_sized(n_frames: int = 1102):
     """The drink-sized synthetic sequence (``n_frames`` x 41, K = 5, random cameras, 0.5% 2D noise)."""
@@ -70,9 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         devices = [d.strip() for d in args.devices.split(",") if d.strip()]
-        fractions = [float(m) for m in args.missing.split(",")]
-        if not all(0 <= m < 1 for m in fractions):
-            raise ValueError(f"--missing: expected fractions in [0, 1), got {args.missing}")
+        fractions = parse_fractions(args.missing, "--missing")
         if args.frames < 20:
             raise ValueError(f"--frames: expected at least 20, got {args.frames}")
         import nrsfm

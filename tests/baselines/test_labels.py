@@ -92,3 +92,9 @@ def test_labels_refuse_perspective_tracks_and_unknown_settings(walk, tmp_path):
         solve_cuts(multiview_cuts(walk[:4]), "csf2", {"k": 3}, out_dir=tmp_path, dataset="w", progress=False)
     with pytest.raises(ValueError, match="backend"):
         solve_cuts(multiview_cuts(walk[:4]), "csf2", out_dir=tmp_path, dataset="w", backend="ray", progress=False)
+
+
+def test_a_root_without_human36m_is_an_error_not_the_stand_in(tmp_path, capsys):
+    code = labels.main(["--root", str(tmp_path), "--out", str(tmp_path / "labels"), "--no-progress"])
+    assert code == 2 and "h36m: expected a dataset folder" in capsys.readouterr().err
+    assert not (tmp_path / "labels").exists()  # nothing was solved

@@ -8,7 +8,7 @@ import pytest
 import scipy.io
 
 from benchmarks import classic, defaults, table1
-from benchmarks.common import Interrupted, run_cells
+from benchmarks.common import Interrupted, parse_fractions, run_cells
 from benchmarks.studies import auto_k, consensus_weight, empnd_starts, k_reference, pr_sweep, spm_cameras, spm_shape
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
@@ -139,7 +139,7 @@ def test_speed_empnd_times_each_device_and_refuses_bad_arguments(tmp_path, capsy
     assert speed_empnd.main(["--devices", "tpu", "--out", str(out)]) == 2
     assert "expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'tpu'" in capsys.readouterr().err
     assert speed_empnd.main(["--missing", "1.5", "--out", str(out)]) == 2
-    assert "--missing: expected fractions in [0, 1)" in capsys.readouterr().err
+    assert "--missing: expected comma-separated fractions in [0, 1)" in capsys.readouterr().err
 
 
 def test_pr_sweep_on_a_small_file(tmp_path, capsys, monkeypatch):
@@ -372,6 +372,17 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
 
 
 
+def test_fraction_options_say_what_they_expect(capsys):
+    assert parse_fractions("0,0.2", "--missing") == [0.0, 0.2]
+    for bad in ("x", "", "0,1", "-0.1", "0.2,,0.3"):
+        with pytest.raises(ValueError, match=r"--missing: expected comma-separated fractions in \[0, 1\) such as "
+                                             r"0,0.2, got "):
+            parse_fractions(bad, "--missing")
+    assert defaults.main(["--missing", "x", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("defaults: error: --missing: expected comma-separated fractions") and "Traceback" not in err
+
+
 def test_defaults_fill_reference_completes_every_fixed_k_by_the_reference(tmp_path, capsys, monkeypatch):
     from nrsfm.datasets.synthetic import drop_entries
 
@@ -419,7 +430,7 @@ def test_k_reference_scores_each_rule_on_the_tuning_and_validation_sets(tmp_path
             {"e3d": {"1": 1.0, "2": 2.0}, "distance": {"empnd": {"1": 0.3, "2": 0.2}}}]
     assert k_reference.score(fake, "empnd", 0.0) == (1, 2, 2.0)
     assert k_reference.main(args[:4] + ["--missing", "1.5"]) == 2
-    assert "--missing: expected fractions in [0, 1)" in capsys.readouterr().err
+    assert "--missing: expected comma-separated fractions in [0, 1)" in capsys.readouterr().err
 
 
 def test_c3dpo_on_the_authors_centred_inputs_returns_prn_units(tmp_path, capsys, monkeypatch):

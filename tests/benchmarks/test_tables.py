@@ -35,7 +35,7 @@ def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, cap
     assert len(set(caches)) == 2  # a model per ratio
     assert (out / "table_s1.png").exists() and (out / "table_s1.csv").exists()
     assert table_s1.main(["--ratios", "0,1.5", "--out", str(out)]) == 2
-    assert "--ratios: expected fractions in [0, 1)" in capsys.readouterr().err
+    assert "--ratios: expected comma-separated fractions in [0, 1)" in capsys.readouterr().err
 
 
 def test_visible_alone_ignores_the_missing_joints():
