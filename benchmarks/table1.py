@@ -78,6 +78,18 @@ SYNTHETIC_MOTIONS: tuple[str, ...] | None = None
 
 
 # --------------------------------------------------------------------------- data
+def split_subjects(args: argparse.Namespace, train_s: list[str], test_s: list[str]) -> tuple[list[str], list[str]]:
+    """The training and evaluation subjects: ``test_s``, or with ``--validate S`` the training subject ``S`` held
+    out of training and evaluated on in their place (to choose a setting without the test subjects)."""
+    held = getattr(args, "validate", None)
+    if held is None:
+        return list(train_s), list(test_s)
+    if held not in train_s or len(train_s) < 2:
+        raise ValidationError(f"--validate: expected one of the training subjects {list(train_s)} (and at least one "
+                              f"other to train on), got {held!r}")
+    return [s for s in train_s if s != held], [held]
+
+
 def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict[str, Split], dict]:
     """The train/test data of every input type, and a description for the metadata."""
     if args.data == "synthetic":
@@ -85,9 +97,11 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
 
         frames = QUICK_FRAMES if args.quick else SYNTHETIC_FRAMES
         takes = 1 if args.quick else 2
-        train_s, test_s = h36m.TRAIN_SUBJECTS, h36m.TEST_SUBJECTS
-        assert set(train_s + test_s) <= set(SUBJECTS)
-        desc = {"data": "synthetic", "train_subjects": list(train_s), "test_subjects": list(test_s),
+        assert set(h36m.TRAIN_SUBJECTS + h36m.TEST_SUBJECTS) <= set(SUBJECTS)
+        train_s, test_s = split_subjects(args, h36m.TRAIN_SUBJECTS, h36m.TEST_SUBJECTS)
+        held = getattr(args, "validate", None)
+        tag = f"synthetic-{frames}-{takes}-{args.seed}" + (f"-val{held}" if held else "")
+        desc = {"data": "synthetic", "train_subjects": train_s, "test_subjects": test_s,
                 "frames_per_clip": frames, "fps": 10, "takes": takes}
         splits = {}
         for inp in inputs:
@@ -100,9 +114,9 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
             if inp == "sh":  # detector-like noise, and no Neck/Nose detection (16 of 17 points), as SH
                 tr_in = [_drop_neck(s) for s in human_sequences(train_s, noise=8.0, **kw)]
                 te_in = [_drop_neck(s) for s in human_sequences(test_s, noise=8.0, **kw)]
-                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"synthetic-{frames}-{takes}-{args.seed}-sh")
+                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"{tag}-sh")
             else:
-                splits[inp] = Split(tr, tr, te, te, inp, tag=f"synthetic-{frames}-{takes}-{args.seed}-{inp}")
+                splits[inp] = Split(tr, tr, te, te, inp, tag=f"{tag}-{inp}")
         return splits, desc
     from nrsfm.datasets import find_dataset
 
@@ -113,10 +127,12 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
     if not train_s or not test_s:
         raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS} and test subjects "
                               f"{h36m.TEST_SUBJECTS}, found {sorted(present)}")
+    missing_test = [s for s in h36m.TEST_SUBJECTS if s not in present]
+    train_s, test_s = split_subjects(args, train_s, test_s)
     stride = h36m.detect_stride(root, test_s[0]) if args.stride == "auto" else int(args.stride)
     fps = 50.0  # the public files' rate; the loaders report fps = 50 / stride
     desc = {"data": "h36m", "root": str(root), "train_subjects": train_s, "test_subjects": test_s,
-            "missing_test_subjects": [s for s in h36m.TEST_SUBJECTS if s not in present], "stride": stride,
+            "missing_test_subjects": missing_test, "stride": stride,
             "stride_rule": args.stride}
     cache: dict[str, list] = {}
 
@@ -214,6 +230,9 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
                    help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
                         "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
+    p.add_argument("--validate", metavar="SUBJECT", default=None,
+                   help="hold this training subject out of training and evaluate on it instead of the test subjects "
+                        "(for choosing a setting without them; no paper numbers beside it)")
     p.add_argument("--plots", action="store_true", help="also write the comparison figures (benchmarks.figures): "
                                                         "qualitative, per-action bars, training curves")
     add_training_arguments(p)
@@ -259,7 +278,8 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
     for n in names:
         if n not in registry:
             raise ValidationError(f"--methods: expected names among {list(registry)}, got {n!r}")
-    out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}")
+    held = "" if args.validate is None else f"-validate-{args.validate}"
+    out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}{held}")
     if args.c3dpo_batch is None:
         args.c3dpo_batch = 128 if args.quick else 1024
     if args.c3dpo_iterations is not None and args.c3dpo_iterations < 1:
@@ -307,11 +327,13 @@ def _run(args: argparse.Namespace) -> int:
     rows_csv, md = [], []
     header = ["Method"] + cols + ["Avg", "paper Avg"]
     for inp in inputs:
-        md.append(f"\n### Table 1 ({inp}): MPJPE (mm), {desc['data']}, test {'+'.join(desc['test_subjects'])}, "
+        evaluated = (f"test {'+'.join(desc['test_subjects'])}" if args.validate is None else
+                     f"validation {args.validate} (a training subject held out of training; no test subject used)")
+        md.append(f"\n### Table 1 ({inp}): MPJPE (mm), {desc['data']}, {evaluated}, "
                   "PRN protocol (mean-centred, z sign per frame, no Procrustes)\n")
         rows = []
         for name in names:
-            paper = PAPER.get((name, inp))
+            paper = PAPER.get((name, inp)) if args.validate is None else None  # the paper's are test numbers
             paper_avg = paper[-1] if paper else None
             if (name, inp) in results:
                 r = results[(name, inp)]
@@ -326,7 +348,7 @@ def _run(args: argparse.Namespace) -> int:
             if paper and args.data == "h36m":
                 rows.append([f"{name} (paper)"] + [_paper_cell(paper, c) for c in cols] + [paper[-1], paper[-1]])
         for (pname, pinp), paper in PAPER.items():
-            if pinp == inp and pname not in names:
+            if pinp == inp and pname not in names and args.validate is None:
                 why = "not selected with --methods" if pname in registry else "not implemented here yet"
                 rows.append([f"{pname} (paper; {why})"]
                             + ([_paper_cell(paper, c) for c in cols] if args.data == "h36m" else [None] * len(cols))

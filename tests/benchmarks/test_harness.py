@@ -44,6 +44,24 @@ def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monke
     assert all(t["cached"] for t in meta["timings"].values())
 
 
+def test_table1_validate_holds_a_training_subject_out_and_evaluates_on_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
+    out = tmp_path / "v"
+    args = ["--iterations", "12", "--out", str(out), "--no-progress", "--methods", "PRN-FCN", "--validate", "S8"]
+    assert table1.main(args) == 0
+    text = capsys.readouterr().out
+    assert "validation S8 (a training subject held out of training; no test subject used)" in text
+    assert "(paper" not in text and "66.7" not in text  # the paper's test numbers are not set beside it
+    data = json.loads((out / "table1.json").read_text())["meta"]["data"]
+    assert data["test_subjects"] == ["S8"] and data["train_subjects"] == ["S1", "S5", "S6", "S7"]
+    evaluated = table1.load_splits(table1.parse_args(table1.parser(), args), ("gt-ortho",))[0]["gt-ortho"]
+    assert {s.meta["subject"] for s in evaluated.test_truth} == {"S8"}
+    assert "S8" not in {s.meta["subject"] for s in evaluated.train_targets}
+    assert evaluated.tag.endswith("-valS8-gt-ortho")  # its own cache key
+    assert table1.main(args[:-1] + ["S9"]) == 2  # a test subject is no validation subject
+    assert "--validate: expected one of the training subjects" in capsys.readouterr().err
+
+
 def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, monkeypatch):
     """Every baseline row gets a number on a small stand-in (two training subjects, one motion, 20 frames: too
     short for PRN's groups, whose rows the test above runs)."""
