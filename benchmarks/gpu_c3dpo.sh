@@ -18,6 +18,7 @@
 # by the budget resumes from its last checkpoint when the script runs again on the same machine, same settings.
 # COMPILE=1 also compiles the iteration with torch.compile (timed in step 1 as well; the schedule follows its time).
 # REPEAT=8 uses each minibatch for 8 iterations, as the authors' data loader did (baselines.c3dpo; default 1).
+# LR sets the learning rate (default: benchmarks.table1's, chosen on a held-out training subject; 1e-3: the authors').
 # DEVICE (default cuda) names the torch device. OUT_DIR gets one log per input, the timings (speed_c3dpo.json) and
 # summary.json (the chosen schedule, each input's table row, its own-protocol numbers and the monitored curve);
 # the script's own output says how far each training got every 30 s.
@@ -94,7 +95,7 @@ left=$((budget + 75 - ($(date +%s) - t_start)))  # 75 s beyond the training for 
 for inp in ${chosen//,/ }; do
   timeout "$left" "$py" -m benchmarks.table1 --root "$root" --input "$inp" --methods C3DPO \
     --c3dpo-iterations "$iterations" --c3dpo-precision "$precision" --c3dpo-repeat "${REPEAT:-1}" --c3dpo-monitor \
-    $eager ${compile:+--c3dpo-compile} \
+    ${LR:+--c3dpo-lr "$LR"} $eager ${compile:+--c3dpo-compile} \
     --device "${DEVICE:-cuda}" --no-progress --out "$work/run-$inp" > "$out/$inp.log" 2>&1 &
 done
 watch_jobs
