@@ -69,7 +69,7 @@ PAPER = {
 }
 INPUTS = ("gt-ortho", "gt-persp", "sh")
 #: C3DPO's learning rate in this table: chosen on a held-out training subject (``--validate S8``), not on the test
-#: subjects; the authors' is 1e-3 (their inputs are at another scale, and the step a basis needs scales with it).
+#: subjects; the authors' 1e-3 (``baselines.c3dpo.C3DPOConfig``) went with their own, undocumented data preparation.
 C3DPO_LR = 1e-2
 SYNTHETIC_FRAMES = 200
 QUICK_FRAMES = 60
