@@ -56,22 +56,22 @@ def reprojection_of(model, sequences: list, unit: float, inputs: str) -> float:
 
 def basis_floor(shapes: np.ndarray, basis: int, rounds: int = 5) -> tuple[float, float]:
     """How well any ``basis``-shape linear model (a mean and ``basis`` shapes, as C3DPO's) can fit `(N, P, 3)`
-    ground-truth shapes (mm): each centred shape rotated onto the mean shape (``rounds`` rounds of orthogonal
-    Procrustes), their principal ``basis`` components fitted and rotated back. Returns the mean 3D point error and
-    the mean error of its image coordinates (mm): a reference for the model's fit, not a strict bound (a basis
-    fitted to the 2D alone, with rotations of its own, can fit the image coordinates closer)."""
-    from nrsfm.geometry import nearest_rotation
+    ground-truth shapes (mm): each centred shape rotated onto the mean shape (``rounds`` alignments of
+    :func:`nrsfm.procrustes.align`: onto the first shape, then sweeps onto the mean), their principal ``basis``
+    components fitted and rotated back. Returns the mean 3D point error and the mean error of its image coordinates
+    (mm): a reference for the model's fit, not a strict bound (a basis fitted to the 2D alone, with rotations of its
+    own, can fit the image coordinates closer)."""
+    import torch
+
+    from nrsfm.procrustes import align
 
     x = shapes - shapes.mean(axis=1, keepdims=True)
-    ref = x[0]
-    for _ in range(rounds):
-        rot = nearest_rotation(np.einsum("fpi,pj->fij", x, ref))  # x @ rot ~ ref
-        aligned = x @ rot
-        ref = aligned.mean(axis=0)
+    al = align(torch.as_tensor(np.swapaxes(x, 1, 2))[None], max_iter=rounds - 1, newton=False)
+    aligned, rot = np.swapaxes(al.aligned[0].numpy(), 1, 2), al.rotations[0].numpy()  # aligned = x @ rot^T
     flat = aligned.reshape(len(x), -1)
     mean = flat.mean(axis=0)
     comps = np.linalg.svd(flat - mean, full_matrices=False)[2][:basis]
-    fitted = (mean + (flat - mean) @ comps.T @ comps).reshape(x.shape) @ np.swapaxes(rot, 1, 2)
+    fitted = (mean + (flat - mean) @ comps.T @ comps).reshape(x.shape) @ rot
     return float(np.linalg.norm(fitted - x, axis=2).mean()), float(np.linalg.norm((fitted - x)[..., :2], axis=2).mean())
 
 
