@@ -31,8 +31,11 @@ def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, cap
                                                              rel=0.05)
     assert "| PRN-FCN, missing joints | – |" in text
     assert parts[0.0]["visible_alone"] == pytest.approx(avg[0.0])  # nothing missing: the same frame as the MPJPE
+    assert parts[0.0]["test_complete"] == pytest.approx(avg[0.0])
+    assert np.isfinite(parts[0.2]["test_complete"]) and parts[0.2]["test_complete"] != pytest.approx(avg[0.2])
+    assert "| PRN-FCN, all joints, the test inputs complete (points missing in training only) |" in text
     caches = [t["cache"] for per in data["meta"]["timings"].values() for t in per.values()]
-    assert len(set(caches)) == 2  # a model per ratio
+    assert len(set(caches)) == 2 and len(list((out / "cache").iterdir())) == 2  # a model per ratio, reused
     assert (out / "table_s1.png").exists() and (out / "table_s1.csv").exists()
     assert table_s1.main(["--ratios", "0,1.5", "--out", str(out)]) == 2
     assert "--ratios: expected comma-separated fractions in [0, 1)" in capsys.readouterr().err
