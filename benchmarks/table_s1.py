@@ -15,9 +15,8 @@ paper's networks on Stacked Hourglass detections are trained against ground-trut
 protocol's MPJPE over all 17 joints, the missing ones included (the network predicts every joint); a second table
 splits it into the joints visible in the input and the missing ones (:func:`by_visibility`) and gives each model's
 error on the complete test inputs (points missing in training only, a reading of the protocol that the paper's
-flat curve would fit). The ``GT 3D`` row
-(the same network supervised with ground-truth 3D, its inputs missing the same share of points) bounds what a
-single-frame network can make of a missing joint. Data, splits, rows and the cache of trained models are those of
+flat curve would fit). The ``GT 3D`` row (the same network supervised with ground-truth 3D, its inputs missing the
+same share of points) bounds what a single-frame network can make of a missing joint. Data, splits, rows and the cache of trained models are those of
 :mod:`benchmarks.table1`; one model is trained per row and ratio.
 """
 
