@@ -16,8 +16,8 @@ protocol's MPJPE over all 17 joints, the missing ones included (the network pred
 splits it into the joints visible in the input and the missing ones (:func:`by_visibility`) and gives each model's
 error on the complete test inputs (points missing in training only, a reading of the protocol that the paper's
 flat curve would fit). The ``GT 3D`` row (the same network supervised with ground-truth 3D, its inputs missing the
-same share of points) bounds what a single-frame network can make of a missing joint. Data, splits, rows and the cache of trained models are those of
-:mod:`benchmarks.table1`; one model is trained per row and ratio.
+same share of points) bounds what a single-frame network can make of a missing joint. Data, splits, rows and the
+cache of trained models are those of :mod:`benchmarks.table1`; one model is trained per row and ratio.
 """
 
 from __future__ import annotations
