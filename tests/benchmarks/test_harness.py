@@ -9,7 +9,8 @@ import scipy.io
 
 from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, parse_fractions, run_cells
-from benchmarks.studies import auto_k, consensus_weight, empnd_starts, k_reference, pr_sweep, spm_cameras, spm_shape
+from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_sweep, spm_cameras,
+                                spm_shape)
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
@@ -607,3 +608,32 @@ def test_c3dpo_fit_basis_floor_is_zero_for_rotated_copies_of_one_shape():
     moving = np.einsum("fpj,fij->fpi", base + rng.normal(size=(40, 17, 3)) * 30.0, rots)
     one, ten = basis_floor(moving, 1), basis_floor(moving, 10)
     assert one[0] > ten[0] > 0.0 and one[1] > ten[1] > 0.0 and ten[1] <= ten[0]
+
+
+def test_csf2_model_scores_every_variant_at_every_k(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    monkeypatch.setattr(defaults, "N_FRAMES", 30)
+    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:2])
+    monkeypatch.setattr(defaults, "FACES", ())
+    out = tmp_path / "m"
+    args = ["--k-max", "2", "--sequences", "walking", "--out", str(out), "--no-progress"]
+    assert csf2_model.main(args) == 0
+    assert ("| sequence | EM-PND | SPM | csf2 | spm cameras | empnd cameras | true cameras (oracle) | d = 0.2F "
+            "| d = 0.4F |") in capsys.readouterr().out
+    rows = json.loads((out / "csf2_model.json").read_text())["rows"]
+    assert [r["sequence"] for r in rows] == ["human-S1-walking-turn30"]  # --sequences kept one of the two
+    assert {v: sorted(e) for v, e in rows[0]["e3d"].items()} == {v: ["1", "2"] for v in csf2_model.VARIANTS}
+    seq = defaults.load_job(defaults.validation_jobs(None)[1][0])
+    assert rows[0]["e3d"]["csf2"]["2"] == pytest.approx(e3d(solve(seq, "csf2", K=2).points_3d, seq.points_3d))
+    assert rows[0]["reference_e3d"]["spm"] == pytest.approx(e3d(solve(seq, "spm").points_3d, seq.points_3d))
+    assert csf2_model.variant_cell({"1": 0.5, "2": 0.25, "3": 0.75}) == "0.2500 (2) – 0.7500"
+    assert csf2_model.main(["--sequences", "nothing-like-this", "--out", str(out)]) == 2
+    assert "--sequences: no validation sequence contains any of ['nothing-like-this']" in capsys.readouterr().err
+
+
+def test_csf2_shape_step_with_the_true_cameras_recovers_exact_tracks():
+    seq = lowrank_sequence(40, 15, 1, cameras="smooth", seed=4)  # rigid: the constant is in the DCT basis
+    shapes = csf2_model.shape_step_with_cameras(seq, seq.camera_rotations, 1)
+    assert e3d(shapes, seq.points_3d) < 1e-6
+    wrong = csf2_model.shape_step_with_cameras(seq, seq.camera_rotations[::-1].copy(), 1)
+    assert e3d(wrong, seq.points_3d) > 0.05
