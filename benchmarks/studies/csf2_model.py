@@ -17,8 +17,9 @@ Each variant's cell: the least e3D over K, its K and the largest e3D over K (cam
 better cameras or a larger basis reached SPM's e3D at some K, a better rule for K or better cameras would mend
 CSF2; if every variant stays far above it, the shape model is the limit. The ground-truth cameras are no oracle
 here: they see the world frame, in which the subject walks and turns, while an NRSfM camera follows the body.
-``--sequences`` keeps the sequences whose name contains one of the comma-separated words. Cells are saved and resumed as in ``benchmarks.classic``; outputs
-in ``runs/csf2_model``. Without data the motions are the synthetic stand-ins of ``benchmarks.defaults``.
+``--sequences`` keeps the sequences whose name contains one of the comma-separated words. Cells are saved and
+resumed as in ``benchmarks.classic``; outputs in ``runs/csf2_model``. Without data the motions are the synthetic
+stand-ins of ``benchmarks.defaults``.
 """
 
 from __future__ import annotations
