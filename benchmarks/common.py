@@ -100,6 +100,24 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
+def parse_study_arguments(name: str, doc: str, argv: list[str] | None,
+                          options: Callable[[argparse.ArgumentParser], None]) -> argparse.Namespace:
+    """The command line of ``python -m benchmarks.studies.NAME`` over the validation set of ``benchmarks.defaults``:
+    ``--root``, ``--jobs``, the study's ``options``, ``--out`` (default ``runs/NAME``) and
+    :func:`add_run_arguments`; then INFO logging on stderr."""
+    from benchmarks.classic import _jobs
+
+    p = argparse.ArgumentParser(prog=f"python -m benchmarks.studies.{name}", description=doc.split("\n\n")[0])
+    p.add_argument("--root", help="data folder holding h36m/ and nrsfm/ (default: $NRSFM_DATA)")
+    p.add_argument("--jobs", type=_jobs, default=1, help="parallel sequences (joblib)")
+    options(p)
+    p.add_argument("--out", default=f"runs/{name}", help=f"output folder (default: runs/{name})")
+    add_run_arguments(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    return args
+
+
 def parse_fractions(text: str, option: str) -> list[float]:
     """``"0,0.2"`` -> ``[0.0, 0.2]``: the comma-separated fractions in [0, 1) of option ``option`` (missing points,
     dropped entries); anything else raises :class:`nrsfm.errors.ValidationError` saying what was expected."""

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata, \
+from benchmarks.common import code_hash, markdown_table, parse_study_arguments, run_cells_from_args, run_metadata, \
     write_outputs
 
 log = logging.getLogger("benchmarks.studies.csf2_model")
@@ -99,19 +99,14 @@ def variant_cell(by_k: dict[str, float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import _jobs
     from benchmarks.defaults import validation_jobs
     from nrsfm.errors import NRSfMError
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.csf2_model", description=__doc__.split("\n\n")[0])
-    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
-    p.add_argument("--jobs", type=_jobs, default=1, help="parallel sequences (joblib)")
-    p.add_argument("--sequences", default="", help="keep the sequences whose name contains one of these words")
-    p.add_argument("--k-max", type=int, default=12, help="largest fixed K (default 12)")
-    p.add_argument("--out", default="runs/csf2_model", help="output folder (default: runs/csf2_model)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--sequences", default="", help="keep the sequences whose name contains one of these words")
+        p.add_argument("--k-max", type=int, default=12, help="largest fixed K (default 12)")
+
+    args = parse_study_arguments("csf2_model", __doc__, argv, options)
     t0 = time.perf_counter()
     try:
         if args.k_max < 1:

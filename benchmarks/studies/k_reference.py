@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, markdown_table, parse_fractions, run_cells_from_args, run_metadata,
-                               write_outputs)
+from benchmarks.common import (code_hash, markdown_table, parse_fractions, parse_study_arguments, run_cells_from_args,
+                               run_metadata, write_outputs)
 
 log = logging.getLogger("benchmarks.studies.k_reference")
 
@@ -83,20 +83,15 @@ def score(results: list[dict], reference: str, tolerance: float) -> tuple[int, i
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import _jobs, benchmark_sequences, job_identity
-    from benchmarks.common import add_run_arguments
+    from benchmarks.classic import benchmark_sequences, job_identity
     from benchmarks.defaults import validation_jobs
     from nrsfm.errors import NRSfMError
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.k_reference", description=__doc__.split("\n\n")[0])
-    p.add_argument("--root", help="data folder holding h36m/ and nrsfm/ (default: $NRSFM_DATA)")
-    p.add_argument("--jobs", type=_jobs, default=1, help="parallel sequences (joblib)")
-    p.add_argument("--missing", default="0,0.2", help="fractions of entries missing on the validation set")
-    p.add_argument("--k-max", type=int, default=12, help="largest fixed K (default 12)")
-    p.add_argument("--out", default="runs/k_reference", help="output folder (default: runs/k_reference)")
-    add_run_arguments(p)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    def options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--missing", default="0,0.2", help="fractions of entries missing on the validation set")
+        p.add_argument("--k-max", type=int, default=12, help="largest fixed K (default 12)")
+
+    args = parse_study_arguments("k_reference", __doc__, argv, options)
     t0 = time.perf_counter()
     try:
         missing = parse_fractions(args.missing, "--missing")

@@ -25,6 +25,15 @@ def _tiny_cmu_file(tmp_path, seq):
     return seq
 
 
+def _tiny_validation_set(monkeypatch, n_motions):
+    """The validation set of ``benchmarks.defaults`` cut to the stand-ins of its first ``n_motions`` motions, 30 frames
+    each, without the faces (a face adds 50 s: CSF2's default solves K = 1..12 on 68 points) and without data."""
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    monkeypatch.setattr(defaults, "N_FRAMES", 30)
+    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:n_motions])
+    monkeypatch.setattr(defaults, "FACES", ())
+
+
 def test_table1_quick_synthetic_writes_tables_and_caches(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
     out = tmp_path / "t1"
@@ -365,10 +374,7 @@ def test_classic_reuses_saved_cells_unless_the_file_changes_or_rerun(tmp_path, c
 
 
 def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, monkeypatch):
-    monkeypatch.delenv("NRSFM_DATA", raising=False)
-    monkeypatch.setattr(defaults, "N_FRAMES", 30)
-    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:2])
-    monkeypatch.setattr(defaults, "FACES", ())  # a face adds 50 s (CSF2's default solves K = 1..12 on 68 points)
+    _tiny_validation_set(monkeypatch, 2)
     out = tmp_path / "d"
     args = ["--methods", "csf2,rank3", "--k-max", "2", "--missing", "0,0.2", "--out", str(out), "--no-progress"]
     assert defaults.main(args) == 0
@@ -405,10 +411,7 @@ def test_fraction_options_say_what_they_expect(capsys):
 def test_defaults_fill_reference_completes_every_fixed_k_by_the_reference(tmp_path, capsys, monkeypatch):
     from nrsfm.datasets.synthetic import drop_entries
 
-    monkeypatch.delenv("NRSFM_DATA", raising=False)
-    monkeypatch.setattr(defaults, "N_FRAMES", 30)
-    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:1])
-    monkeypatch.setattr(defaults, "FACES", ())
+    _tiny_validation_set(monkeypatch, 1)
     out = tmp_path / "d"
     args = ["--methods", "csf2", "--k-max", "2", "--missing", "0.2", "--fill", "reference", "--out", str(out),
             "--no-progress"]
@@ -423,10 +426,7 @@ def test_defaults_fill_reference_completes_every_fixed_k_by_the_reference(tmp_pa
         defaults.main(["--fill", "mean"])
 
 def test_k_reference_scores_each_rule_on_the_tuning_and_validation_sets(tmp_path, capsys, monkeypatch):
-    monkeypatch.delenv("NRSFM_DATA", raising=False)
-    monkeypatch.setattr(defaults, "N_FRAMES", 30)
-    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:1])
-    monkeypatch.setattr(defaults, "FACES", ())
+    _tiny_validation_set(monkeypatch, 1)
     _tiny_cmu_file(tmp_path, lowrank_sequence(30, 12, 2, seed=3, noise=0.01))
     out = tmp_path / "k"
     args = ["--root", str(tmp_path / "data"), "--k-max", "2", "--missing", "0,0.2", "--out", str(out), "--no-progress"]
@@ -611,10 +611,7 @@ def test_c3dpo_fit_basis_floor_is_zero_for_rotated_copies_of_one_shape():
 
 
 def test_csf2_model_scores_every_variant_at_every_k(tmp_path, capsys, monkeypatch):
-    monkeypatch.delenv("NRSFM_DATA", raising=False)
-    monkeypatch.setattr(defaults, "N_FRAMES", 30)
-    monkeypatch.setattr(defaults, "VALIDATION", defaults.VALIDATION[:2])
-    monkeypatch.setattr(defaults, "FACES", ())
+    _tiny_validation_set(monkeypatch, 2)
     out = tmp_path / "m"
     args = ["--k-max", "2", "--sequences", "walking", "--out", str(out), "--no-progress"]
     assert csf2_model.main(args) == 0
