@@ -26,7 +26,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from benchmarks.common import (code_hash, markdown_table, parse_fractions, parse_study_arguments, run_cells_from_args,
                                run_metadata, write_outputs)
 
