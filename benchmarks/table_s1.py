@@ -135,7 +135,8 @@ def _run(args: argparse.Namespace) -> int:
             both = test if ratio == 0 else dataclasses.replace(
                 test, test_inputs=test.test_inputs + split.test_inputs, test_truth=test.test_truth + split.test_truth)
             out_preds = registry[name].run(both, ctx)
-            preds, complete = out_preds[:n], out_preds[n:] or out_preds[:n]
+            preds = out_preds[:n]
+            complete = out_preds[n:] if ratio > 0 else preds
             results[(name, ratio)] = evaluate(preds, test.test_truth)
             split_errors[(name, ratio)] = by_visibility(preds, test)
             split_errors[(name, ratio)]["test_complete"] = evaluate(complete, split.test_truth)["Avg"][0]
