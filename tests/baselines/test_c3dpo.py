@@ -282,7 +282,7 @@ def test_c3dpo_recovers_the_depth_of_low_rank_shapes_seen_from_many_views():
     camera = turns @ shapes
     camera -= camera.mean(axis=2, keepdims=True)
     w, v = camera[:, :2].transpose(0, 2, 1), np.ones((n, n_points))
-    config = C3DPOConfig(width=256, n_layers=1, iterations=2000, batch=256, lr=1e-2, device="cpu")
+    config = C3DPOConfig(width=256, n_layers=1, iterations=2000, batch=128, lr=1e-2, device="cpu")
     model, _ = train_c3dpo(w[:5000], v[:5000], config, None, progress=False)
     pred, truth = predict_c3dpo(model, w[5000:], v[5000:]), camera[5000:].transpose(0, 2, 1)
 
