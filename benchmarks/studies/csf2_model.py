@@ -115,17 +115,17 @@ def main(argv: list[str] | None = None) -> int:
     except (NRSfMError, ValueError) as exc:
         print(f"csf2_model: error: {exc}", file=sys.stderr)
         return 2
+    names = {j: j.rsplit("/", 1)[-1].replace(":", "-") for j in jobs}  # without the data folder
     words = [w.strip() for w in args.sequences.split(",") if w.strip()]
     if words:
-        kept = [j for j in jobs if any(w in j.replace(":", "-") for w in words)]
+        kept = [j for j in jobs if any(w in names[j] for w in words)]
         if not kept:
             print(f"csf2_model: error: --sequences: no validation sequence contains any of {words}; the sequences: "
-                  f"{', '.join(j.rsplit('/', 1)[-1] for j in jobs)}", file=sys.stderr)
+                  f"{', '.join(names.values())}", file=sys.stderr)
             return 2
         jobs = kept
     code = code_hash(__file__, Path(__file__).parent.parent / "defaults.py")
-    cells = [(j.rsplit("/", 1)[-1].replace(":", "-"), {"job": j, "k_max": args.k_max, "code": code},
-              (j, args.k_max)) for j in jobs]
+    cells = [(names[j], {"job": j, "k_max": args.k_max, "code": code}, (j, args.k_max)) for j in jobs]
     done = run_cells_from_args(args, cells, run_one, Path(args.out), "csf2_model")
     if done is None:
         return 130
