@@ -70,8 +70,8 @@ def validation_jobs(root: str | None) -> tuple[Path | None, list[str]]:
 
 
 def load_job(job: str):
-    """A validation job of :func:`validation_jobs`, or a CMU file, as a :class:`~nrsfm.sequence.Sequence`."""
-    import nrsfm
+    """A validation job of :func:`validation_jobs`, or a job of :func:`benchmarks.classic.benchmark_sequences` (a CMU
+    file or a stand-in name), as a :class:`~nrsfm.sequence.Sequence`."""
     from nrsfm.datasets import h36m
     from nrsfm.datasets.synthetic import face_sequences, human_motion, orbit_sequence
 
@@ -94,7 +94,9 @@ def load_job(job: str):
     if kind == "face":
         i = int(rest)
         return face_sequences(i + 1, N_FRAMES)[i].replace(name=f"face-{i}")
-    return nrsfm.load_sequence(job)
+    from benchmarks.classic import load_benchmark_sequence
+
+    return load_benchmark_sequence(job)
 
 
 def k_cap(n_frames: int, n_points: int, k_max: int) -> int:

@@ -9,8 +9,8 @@ import scipy.io
 
 from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, parse_fractions, run_cells
-from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_sweep, spm_cameras,
-                                spm_shape)
+from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_iterations,
+                                pr_sweep, spm_cameras, spm_shape)
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
@@ -395,6 +395,43 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     assert "csf2, 20% missing: default within 10% of the best fixed K on" in text
     assert "not run:" in text
 
+
+
+def test_defaults_on_the_cmu_stand_ins_without_data(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    assert defaults.load_job(classic.STAND_INS[0]).name == classic.stand_in(classic.STAND_INS[0]).name
+    out = tmp_path / "d"
+    assert defaults.main(["--set", "cmu", "--methods", "rank3", "--out", str(out), "--no-progress"]) == 0
+    rows = json.loads((out / "defaults.json").read_text())["rows"]
+    assert [r["status"] for r in rows] == ["ok"] * len(classic.STAND_INS)
+
+
+def test_pr_iterations_names_the_best_cap_on_the_cmu_cells_alone(tmp_path, capsys, monkeypatch):
+    _tiny_validation_set(monkeypatch, 1)
+    tiny = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 12, 2, seed=3, noise=0.01))
+    out = tmp_path / "p"
+    args = ["--root", str(tmp_path / "data"), "--caps", "2,20", "--missing", "0", "--out", str(out), "--no-progress"]
+    assert pr_iterations.main(args) == 0
+    text = capsys.readouterr().out
+    data = json.loads((out / "pr_iterations.json").read_text())
+    assert [(r["set"], r["sequence"], r["cap"]) for r in data["rows"]] == [
+        ("cmu", "tiny", 2), ("cmu", "tiny", 20), ("validation", "human-S1-walking-turn30", 2),
+        ("validation", "human-S1-walking-turn30", 20)]
+    assert all(r["iterations"] <= r["cap"] for r in data["rows"])
+    cmu = {r["cap"]: r["e3d"] for r in data["rows"] if r["set"] == "cmu"}
+    assert data["cmu_best"] == min(cmu, key=cmu.get)
+    assert data["cmu_geometric_mean"] == {str(c): pytest.approx(v) for c, v in cmu.items()}
+    assert f"Best cap on the CMU cells (least geometric mean of e3D, both fractions): {data['cmu_best']}," in text
+    assert "(PR's default, 2000, not among the caps)" in text
+    seq = load_sequence(tmp_path / "data" / "nrsfm" / "tiny.mat")
+    assert cmu[20] == pytest.approx(e3d(solve(seq, "pr", max_iter=20).points_3d, tiny.points_3d))
+    # a changed validation cell cannot move the choice: it is made on the CMU rows
+    rows = [dict(r, e3d=r["e3d"] * (100 if r["set"] == "validation" and r["cap"] == data["cmu_best"] else 1))
+            for r in data["rows"]]
+    assert pr_iterations.summarise(rows, (2, 20))[1] == data["cmu_best"]
+    with pytest.raises(SystemExit):
+        pr_iterations.main(["--caps", "0,10"])
+    assert "expected comma-separated iteration counts >= 1" in capsys.readouterr().err
 
 
 def test_fraction_options_say_what_they_expect(capsys):
