@@ -69,6 +69,21 @@ def validation_jobs(root: str | None) -> tuple[Path | None, list[str]]:
     return folder, jobs + [f"face:{i}" for i in FACES]
 
 
+def both_sets(root: str | None, missing: str, who: str) -> tuple[list[float], tuple[Path | None, list[str]],
+                                                             tuple[Path | None, list[str]]]:
+    """A study's ``--missing`` fractions, and (data folder, jobs) of the CMU files (the tuning set; stand-ins without
+    data) and of the validation set; raises ValueError or NRSfMError saying what was expected."""
+    from benchmarks.classic import benchmark_sequences
+
+    return parse_fractions(missing, "--missing"), benchmark_sequences(root, None, who), validation_jobs(root)
+
+
+def job_label(job: str) -> str:
+    """A job's name in tables and cache keys: a file's stem, or a generated job without its data folder
+    (``h36m-S1-Walking-30``)."""
+    return Path(job).stem if Path(job).is_file() else job.rsplit("/", 1)[-1].replace(":", "-")
+
+
 def load_job(job: str):
     """A validation job of :func:`validation_jobs`, or a job of :func:`benchmarks.classic.benchmark_sequences` (a CMU
     file or a stand-in name), as a :class:`~nrsfm.sequence.Sequence`."""
@@ -201,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     cells = []
     for j in jobs:
         ident = job_identity(j) if Path(j).is_file() else {"job": j}
-        label = Path(j).stem if Path(j).is_file() else j.rsplit("/", 1)[-1].replace(":", "-")
+        label = job_label(j)
         for miss in missing:
             for m in methods:
                 ks = [None] + (list(range(1, k_cap(*sizes[j], args.k_max) + 1)) if m in WITH_K else [])

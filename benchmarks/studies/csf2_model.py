@@ -99,7 +99,7 @@ def variant_cell(by_k: dict[str, float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.defaults import validation_jobs
+    from benchmarks.defaults import job_label, validation_jobs
     from nrsfm.errors import NRSfMError
 
     def options(p: argparse.ArgumentParser) -> None:
@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     except (NRSfMError, ValueError) as exc:
         print(f"csf2_model: error: {exc}", file=sys.stderr)
         return 2
-    names = {j: j.rsplit("/", 1)[-1].replace(":", "-") for j in jobs}  # without the data folder
+    names = {j: job_label(j) for j in jobs}  # without the data folder
     words = [w.strip() for w in args.sequences.split(",") if w.strip()]
     if words:
         kept = [j for j in jobs if any(w in names[j] for w in words)]

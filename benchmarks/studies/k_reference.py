@@ -26,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import (code_hash, markdown_table, parse_fractions, parse_study_arguments, run_cells_from_args,
+from benchmarks.common import (code_hash, markdown_table, parse_study_arguments, run_cells_from_args,
                                run_metadata, write_outputs)
 
 log = logging.getLogger("benchmarks.studies.k_reference")
@@ -81,8 +81,8 @@ def score(results: list[dict], reference: str, tolerance: float) -> tuple[int, i
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.classic import benchmark_sequences, job_identity
-    from benchmarks.defaults import validation_jobs
+    from benchmarks.classic import job_identity
+    from benchmarks.defaults import both_sets, job_label
     from nrsfm.errors import NRSfMError
 
     def options(p: argparse.ArgumentParser) -> None:
@@ -92,9 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_study_arguments("k_reference", __doc__, argv, options)
     t0 = time.perf_counter()
     try:
-        missing = parse_fractions(args.missing, "--missing")
-        _, cmu = benchmark_sequences(args.root, None, "k_reference")
-        folder, val = validation_jobs(args.root)
+        missing, (_, cmu), (folder, val) = both_sets(args.root, args.missing, "k_reference")
     except (NRSfMError, ValueError) as exc:
         print(f"k_reference: error: {exc}", file=sys.stderr)
         return 2
@@ -102,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     sets = [("tuning", j, 0.0) for j in cmu] + [("validation", j, m) for j in val for m in missing]
     cells = []
     for which, j, m in sets:
-        label = Path(j).stem if Path(j).is_file() else j.rsplit("/", 1)[-1].replace(":", "-")
+        label = job_label(j)
         ident = job_identity(j) if Path(j).is_file() else {"job": j}
         cells.append((f"{label}-m{m:g}", {**ident, "missing": m, "k_max": args.k_max, "code": code},
                       (j, which == "tuning", m, args.k_max)))

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, markdown_table, parse_fractions, parse_study_arguments,
+from benchmarks.common import (code_hash, markdown_table, parse_study_arguments,
                                run_cells_from_args, run_metadata, write_outputs)
 
 log = logging.getLogger("benchmarks.studies.pr_iterations")
@@ -100,8 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers.pr import PRParams
 
-    from benchmarks.classic import benchmark_sequences
-    from benchmarks.defaults import validation_jobs
+    from benchmarks.defaults import both_sets, job_label
 
     def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--caps", type=_caps, default=CAPS, help="comma-separated L-BFGS iteration caps")
@@ -110,15 +109,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_study_arguments("pr_iterations", __doc__, argv, options)
     t0 = time.perf_counter()
     try:
-        missing = parse_fractions(args.missing, "--missing")
-        cmu_folder, cmu = benchmark_sequences(args.root, None, "pr_iterations")
-        val_folder, val = validation_jobs(args.root)
+        missing, (cmu_folder, cmu), (val_folder, val) = both_sets(args.root, args.missing, "pr_iterations")
     except (NRSfMError, ValueError) as exc:
         print(f"pr_iterations: error: {exc}", file=sys.stderr)
         return 2
     code = code_hash(__file__, Path(__file__).parent.parent / "defaults.py")
     sets = {**{j: "cmu" for j in cmu}, **{j: "validation" for j in val}}
-    names = {j: (Path(j).stem if Path(j).is_file() else j.rsplit("/", 1)[-1].replace(":", "-")) for j in sets}
+    names = {j: job_label(j) for j in sets}
     cells = [(f"{names[j]}-{cap}-m{miss:g}", {"job": names[j], "set": s, "cap": cap, "missing": miss, "code": code},
               (j, cap, miss)) for j, s in sets.items() for miss in missing for cap in args.caps]
     done = run_cells_from_args(args, cells, run_one, Path(args.out), "pr_iterations")
