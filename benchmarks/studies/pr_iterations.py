@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers.pr import PRParams
 
+    from benchmarks.classic import job_identity
     from benchmarks.defaults import both_sets, job_label
 
     def options(p: argparse.ArgumentParser) -> None:
@@ -116,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     code = code_hash(__file__, Path(__file__).parent.parent / "defaults.py")
     sets = {**{j: "cmu" for j in cmu}, **{j: "validation" for j in val}}
     names = {j: job_label(j) for j in sets}
-    cells = [(f"{names[j]}-{cap}-m{miss:g}", {"job": names[j], "set": s, "cap": cap, "missing": miss, "code": code},
+    # a file is known by its bytes (a changed file is solved again), a generated job by its name
+    ident = {j: job_identity(j) if Path(j).is_file() else {"job": names[j]} for j in sets}
+    cells = [(f"{names[j]}-{cap}-m{miss:g}", {**ident[j], "set": s, "cap": cap, "missing": miss, "code": code},
               (j, cap, miss)) for j, s in sets.items() for miss in missing for cap in args.caps]
     done = run_cells_from_args(args, cells, run_one, Path(args.out), "pr_iterations")
     if done is None:
