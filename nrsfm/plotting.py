@@ -34,8 +34,9 @@ def _align_for_display(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return (pred - pred.mean(axis=1, keepdims=True)) @ nearest_rotation(q_ls, allow_reflection=True).T
 
 
-def _draw(ax, pts: np.ndarray, edges, *, three_d: bool, colour: str, vis: np.ndarray | None = None) -> None:
-    """Points `(P, 2 or 3)` and their ``edges`` (pairs of point indices; one line collection) on ``ax``."""
+def _draw(ax, pts: np.ndarray, edges: np.ndarray | None, *, three_d: bool, colour: str,
+          vis: np.ndarray | None = None) -> None:
+    """Points `(P, 2 or 3)` and their ``edges`` `(E, 2)` (pairs of point indices; one line collection) on ``ax``."""
     from matplotlib.collections import LineCollection
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
@@ -44,8 +45,8 @@ def _draw(ax, pts: np.ndarray, edges, *, three_d: bool, colour: str, vis: np.nda
         # draw with y pointing up (camera y points down)
         x, y, z = pts[:, 0], pts[:, 2], -pts[:, 1]
         ax.scatter(x[shown], y[shown], z[shown], s=6, c=colour)
-        if edges:
-            ends = np.stack([x, y, z], axis=1)[np.asarray(edges)]  # (E, 2, 3)
+        if edges is not None and len(edges):
+            ends = np.stack([x, y, z], axis=1)[edges]  # (E, 2, 3)
             ax.add_collection3d(Line3DCollection(ends, colors=colour, linewidths=1))
         mid = np.array([x.mean(), y.mean(), z.mean()])
         half = 0.5 * max(np.ptp(x), np.ptp(y), np.ptp(z), 1e-9)
@@ -56,9 +57,8 @@ def _draw(ax, pts: np.ndarray, edges, *, three_d: bool, colour: str, vis: np.nda
         x, y = pts[:, 0], -pts[:, 1]
         ax.scatter(x[shown], y[shown], s=6, c=colour)
         ax.scatter(x[~shown], y[~shown], s=10, c="red", marker="x")
-        if edges:
-            pairs = np.asarray(edges)
-            pairs = pairs[shown[pairs[:, 0]] & shown[pairs[:, 1]]]
+        if edges is not None and len(edges):
+            pairs = edges[shown[edges[:, 0]] & shown[edges[:, 1]]]
             ax.add_collection(LineCollection(np.stack([x, y], axis=1)[pairs], colors=colour, linewidths=1))
         ax.set_aspect("equal", adjustable="datalim")
 
@@ -97,10 +97,9 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
     if seq.points_3d is not None:
         cols.append("ground truth")
     fig = plt.figure(figsize=(3.2 * len(cols), 3.0 * len(frames)))
-    edges = None if seq.edges is None else seq.edges.tolist()
     for r, f in enumerate(frames):
         ax = fig.add_subplot(len(frames), len(cols), r * len(cols) + 1)
-        _draw(ax, seq.points_2d[f], edges, three_d=False, colour="tab:blue",
+        _draw(ax, seq.points_2d[f], seq.edges, three_d=False, colour="tab:blue",
               vis=None if seq.visibility is None else seq.visibility[f])
         ax.set_title(f"frame {f}: {cols[0]}", fontsize=8)
         c = 2
@@ -108,7 +107,7 @@ def plot_reconstruction(seq: Sequence, points_3d: np.ndarray | None, path: str |
             if data is None:
                 continue
             ax = fig.add_subplot(len(frames), len(cols), r * len(cols) + c, projection="3d")
-            _draw(ax, data[f] - data[f].mean(axis=0), edges, three_d=True, colour=colour)
+            _draw(ax, data[f] - data[f].mean(axis=0), seq.edges, three_d=True, colour=colour)
             ax.set_title(label, fontsize=8)
             for axis in (ax.xaxis, ax.yaxis, ax.zaxis):  # arbitrary units; their ticks cost most of the drawing
                 axis.set_ticks([])
