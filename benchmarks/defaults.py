@@ -24,14 +24,17 @@ saved and resumed as in ``benchmarks.classic``; outputs in ``runs/defaults-SET``
 
 from __future__ import annotations
 
+import argparse
 import logging
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, markdown_table, parse_fractions, run_cells_from_args, run_metadata,
-                               write_outputs)
+from benchmarks.common import (code_hash, markdown_table, parse_fractions, parse_study_arguments, run_cells_from_args,
+                               run_metadata, write_outputs)
 
 log = logging.getLogger("benchmarks.defaults")
 
@@ -69,13 +72,23 @@ def validation_jobs(root: str | None) -> tuple[Path | None, list[str]]:
     return folder, jobs + [f"face:{i}" for i in FACES]
 
 
-def both_sets(root: str | None, missing: str, who: str) -> tuple[list[float], tuple[Path | None, list[str]],
-                                                             tuple[Path | None, list[str]]]:
-    """A study's ``--missing`` fractions, and (data folder, jobs) of the CMU files (the tuning set; stand-ins without
-    data) and of the validation set; raises ValueError or NRSfMError saying what was expected."""
+def study_over_both_sets(name: str, doc: str, argv: list[str] | None,
+                         options: Callable[[argparse.ArgumentParser], None]):
+    """The command line of a study over the CMU files and the validation set (:func:`benchmarks.common.
+    parse_study_arguments`; ``options`` must add ``--missing``): the arguments, the ``--missing`` fractions, and
+    (data folder, jobs) of the CMU files (the tuning set; stand-ins without data) and of the validation set. A bad
+    value is printed as ``NAME: error: ...`` on stderr and None returned (exit status 2)."""
+    from nrsfm.errors import NRSfMError
+
     from benchmarks.classic import benchmark_sequences
 
-    return parse_fractions(missing, "--missing"), benchmark_sequences(root, None, who), validation_jobs(root)
+    args = parse_study_arguments(name, doc, argv, options)
+    try:
+        return (args, parse_fractions(args.missing, "--missing"), benchmark_sequences(args.root, None, name),
+                validation_jobs(args.root))
+    except (NRSfMError, ValueError) as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return None
 
 
 def job_label(job: str) -> str:
@@ -171,9 +184,6 @@ def summarise(rows: list[dict]) -> tuple[list[list], list[dict]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-    import sys
-
     from nrsfm.errors import NRSfMError
     from nrsfm.solvers import available_solvers
     from nrsfm.solvers.kselect import FILLS

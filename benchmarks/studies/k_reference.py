@@ -26,8 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import (code_hash, markdown_table, parse_study_arguments, run_cells_from_args,
-                               run_metadata, write_outputs)
+from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
 log = logging.getLogger("benchmarks.studies.k_reference")
 
@@ -82,20 +81,17 @@ def score(results: list[dict], reference: str, tolerance: float) -> tuple[int, i
 
 def main(argv: list[str] | None = None) -> int:
     from benchmarks.classic import job_identity
-    from benchmarks.defaults import both_sets, job_label
-    from nrsfm.errors import NRSfMError
+    from benchmarks.defaults import job_label, study_over_both_sets
 
     def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--missing", default="0,0.2", help="fractions of entries missing on the validation set")
         p.add_argument("--k-max", type=int, default=12, help="largest fixed K (default 12)")
 
-    args = parse_study_arguments("k_reference", __doc__, argv, options)
-    t0 = time.perf_counter()
-    try:
-        missing, (_, cmu), (folder, val) = both_sets(args.root, args.missing, "k_reference")
-    except (NRSfMError, ValueError) as exc:
-        print(f"k_reference: error: {exc}", file=sys.stderr)
+    parsed = study_over_both_sets("k_reference", __doc__, argv, options)
+    if parsed is None:
         return 2
+    args, missing, (_, cmu), (folder, val) = parsed
+    t0 = time.perf_counter()
     code = code_hash(__file__, Path(__file__).parent.parent / "defaults.py")
     sets = [("tuning", j, 0.0) for j in cmu] + [("validation", j, m) for j in val for m in missing]
     cells = []

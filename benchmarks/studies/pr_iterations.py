@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (code_hash, markdown_table, parse_study_arguments,
-                               run_cells_from_args, run_metadata, write_outputs)
+from benchmarks.common import code_hash, markdown_table, run_cells_from_args, run_metadata, write_outputs
 
 log = logging.getLogger("benchmarks.studies.pr_iterations")
 
@@ -97,23 +96,20 @@ def summarise(rows: list[dict], caps: tuple[int, ...]) -> tuple[list[list], int 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nrsfm.errors import NRSfMError
     from nrsfm.solvers.pr import PRParams
 
     from benchmarks.classic import job_identity
-    from benchmarks.defaults import both_sets, job_label
+    from benchmarks.defaults import job_label, study_over_both_sets
 
     def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--caps", type=_caps, default=CAPS, help="comma-separated L-BFGS iteration caps")
         p.add_argument("--missing", default="0,0.2", help="comma-separated fractions of entries to mark missing")
 
-    args = parse_study_arguments("pr_iterations", __doc__, argv, options)
-    t0 = time.perf_counter()
-    try:
-        missing, (cmu_folder, cmu), (val_folder, val) = both_sets(args.root, args.missing, "pr_iterations")
-    except (NRSfMError, ValueError) as exc:
-        print(f"pr_iterations: error: {exc}", file=sys.stderr)
+    parsed = study_over_both_sets("pr_iterations", __doc__, argv, options)
+    if parsed is None:
         return 2
+    args, missing, (cmu_folder, cmu), (val_folder, val) = parsed
+    t0 = time.perf_counter()
     code = code_hash(__file__, Path(__file__).parent.parent / "defaults.py")
     sets = {**{j: "cmu" for j in cmu}, **{j: "validation" for j in val}}
     names = {j: job_label(j) for j in sets}
