@@ -99,8 +99,10 @@ def test_repeat_uses_each_minibatch_for_that_many_iterations_and_resumes_inside_
     resumed, record = train_c3dpo(x, w, config, tmp_path / "cut", progress=False)
     assert record["iterations_run"] == 7
     assert np.array_equal(seen[0], groups[1][0]) and np.array_equal(seen[-1], groups[2][0])
+    # the same weights up to rounding: on a GPU (config device "auto") the backward's atomic additions run in no fixed
+    # order (1.6e-5 seen at one weight near 0 on an H200); a lost momentum moves them by 2e-4, a wrong minibatch more
     for a, b in zip(whole.state_dict().values(), resumed.state_dict().values()):
-        torch.testing.assert_close(a, b)
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=5e-5)
     assert "repeat" not in SMALL.key() and config.key()["repeat"] == 4  # old caches keep their key
     with pytest.raises(ValueError, match="repeat >= 1"):
         dataclasses.replace(SMALL, repeat=0)
