@@ -406,32 +406,38 @@ def test_defaults_on_the_cmu_stand_ins_without_data(tmp_path, capsys, monkeypatc
     assert [r["status"] for r in rows] == ["ok"] * len(classic.STAND_INS)
 
 
-def test_pr_iterations_names_the_best_cap_on_the_cmu_cells_alone(tmp_path, capsys, monkeypatch):
+def test_pr_iterations_names_the_best_stopping_rule_on_the_cmu_cells_alone(tmp_path, capsys, monkeypatch):
     _tiny_validation_set(monkeypatch, 1)
     tiny = _tiny_cmu_file(tmp_path, lowrank_sequence(30, 12, 2, seed=3, noise=0.01))
     out = tmp_path / "p"
-    args = ["--root", str(tmp_path / "data"), "--caps", "2,20", "--missing", "0", "--out", str(out), "--no-progress"]
+    args = ["--root", str(tmp_path / "data"), "--caps", "2,20", "--tols", "1e-2", "--missing", "0", "--out",
+            str(out), "--no-progress"]
     assert pr_iterations.main(args) == 0
     text = capsys.readouterr().out
     data = json.loads((out / "pr_iterations.json").read_text())
-    assert [(r["set"], r["sequence"], r["cap"]) for r in data["rows"]] == [
-        ("cmu", "tiny", 2), ("cmu", "tiny", 20), ("validation", "human-S1-walking-turn30", 2),
-        ("validation", "human-S1-walking-turn30", 20)]
-    assert all(r["iterations"] <= r["cap"] for r in data["rows"])
-    cmu = {r["cap"]: r["e3d"] for r in data["rows"] if r["set"] == "cmu"}
+    rules = ["max_iter=2", "max_iter=20", "tol=0.01"]
+    assert [(r["set"], r["sequence"], r["rule"]) for r in data["rows"]] == [
+        *(("cmu", "tiny", q) for q in rules), *(("validation", "human-S1-walking-turn30", q) for q in rules)]
+    assert all(r["iterations"] <= int(r["rule"][9:]) for r in data["rows"] if r["rule"].startswith("max_iter"))
+    cmu = {r["rule"]: r["e3d"] for r in data["rows"] if r["set"] == "cmu"}
     assert data["cmu_best"] == min(cmu, key=cmu.get)
-    assert data["cmu_geometric_mean"] == {str(c): pytest.approx(v) for c, v in cmu.items()}
-    assert f"Best cap on the CMU cells (least geometric mean of e3D, both fractions): {data['cmu_best']}," in text
-    assert "(PR's default, 2000, not among the caps)" in text
+    assert data["cmu_geometric_mean"] == {q: pytest.approx(v) for q, v in cmu.items()}
+    assert f"Best rule on the CMU cells (least geometric mean of e3D, both fractions): {data['cmu_best']}," in text
+    assert "(PR's default, max_iter=2000, not among the rules)" in text
     seq = load_sequence(tmp_path / "data" / "nrsfm" / "tiny.mat")
-    assert cmu[20] == pytest.approx(e3d(solve(seq, "pr", max_iter=20).points_3d, tiny.points_3d))
+    assert cmu["max_iter=20"] == pytest.approx(e3d(solve(seq, "pr", max_iter=20).points_3d, tiny.points_3d))
+    loose = solve(seq, "pr", tol=1e-2)  # a loose tolerance stops L-BFGS early, as the study's cell did
+    assert loose.iterations < solve(seq, "pr").iterations
+    assert cmu["tol=0.01"] == pytest.approx(e3d(loose.points_3d, tiny.points_3d))
     # a changed validation cell cannot move the choice: it is made on the CMU rows
-    rows = [dict(r, e3d=r["e3d"] * (100 if r["set"] == "validation" and r["cap"] == data["cmu_best"] else 1))
+    rows = [dict(r, e3d=r["e3d"] * (100 if r["set"] == "validation" and r["rule"] == data["cmu_best"] else 1))
             for r in data["rows"]]
-    assert pr_iterations.summarise(rows, (2, 20))[1] == data["cmu_best"]
-    with pytest.raises(SystemExit):
-        pr_iterations.main(["--caps", "0,10"])
-    assert "expected comma-separated iteration counts >= 1" in capsys.readouterr().err
+    assert pr_iterations.summarise(rows, rules)[1] == data["cmu_best"]
+    for bad, expected in ((["--caps", "0,10"], "expected comma-separated iteration counts >= 1"),
+                          (["--tols", "0,1e-5"], "expected comma-separated tolerances in (0, 1)")):
+        with pytest.raises(SystemExit):
+            pr_iterations.main(bad)
+        assert expected in capsys.readouterr().err
 
 
 def test_fraction_options_say_what_they_expect(capsys):
