@@ -127,7 +127,8 @@ def rotation_error_per_frame(pred_rotations: np.ndarray, gt_rotations: np.ndarra
     if gt.shape != pred.shape:
         raise shape_error("gt_rotations", f"(F, 3, 3) with F = {pred.shape[0]} like pred_rotations", gt.shape)
     a, b = pred[:, :2].reshape(-1, 3), gt[:, :2].reshape(-1, 3)
-    return np.linalg.norm((a @ nearest_rotation(a.T @ b, allow_reflection=True) - b).reshape(-1, 2, 3), ord=2, axis=(1, 2))
+    residual = a @ nearest_rotation(a.T @ b, allow_reflection=True) - b  # (2F, 3)
+    return np.linalg.norm(residual.reshape(-1, 2, 3), ord=2, axis=(1, 2))
 
 
 def camera_moves(rotations: np.ndarray, tol: float = 1e-9) -> bool:

@@ -15,9 +15,9 @@ CSV/JSON/Markdown to ``runs/auto_k``; cells are saved and resumed as in ``benchm
 ``--missing 0.2`` first marks that fraction of entries missing (:func:`nrsfm.datasets.synthetic.drop_entries`) and
 runs CSF2-occlusion; the ranks are then the visible entries' exact rank
 (:func:`nrsfm.lowrank.visible_rank`) and the noisy tracks' rank
-(:func:`nrsfm.lowrank.noise_visible_rank`), and the simpler rule is the exact rank, else the cap. Every K runs only where the two rules differ; elsewhere (and on the CMU files, where
-CSF2-occlusion takes tens of seconds a K) only the rules' K and the cap, so "best K" is over those. Output to
-``runs/auto_k-missing0.2``.
+(:func:`nrsfm.lowrank.noise_visible_rank`), and the simpler rule is the exact rank, else the cap. Every K runs
+only where the two rules differ; elsewhere (and on the CMU files, where CSF2-occlusion takes tens of seconds a K)
+only the rules' K and the cap, so "best K" is over those. Output to ``runs/auto_k-missing0.2``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """EM-PND on the CPU and on a GPU: time, iterations and e3D of the same solve on each device.
 
-    python -m benchmarks.studies.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--frames 1102] [--root DIR] [--out DIR]
+    python -m benchmarks.studies.speed_empnd [--devices cpu,cuda] [--missing 0,0.2] [--frames 1102] [--root DIR]
+        [--out DIR]
 
 Sequences: a drink-sized synthetic one (``--frames`` frames, 1102 by default,
 x 41 points, K = 5, random cameras, 0.5% 2D noise; always) and CMU drink when the data is found

@@ -1,7 +1,7 @@
 """SPM's shape step: the authors' nuclear norm against the partial sum of singular values beyond K.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.studies.spm_shape [--root DIR] [--jobs N] [--sequences a,b] [--smooth 300,1000]
-        [--out DIR] [--rerun] [--no-progress]
+    OMP_NUM_THREADS=1 python -m benchmarks.studies.spm_shape [--root DIR] [--jobs N] [--sequences a,b]
+        [--smooth 300,1000] [--out DIR] [--rerun] [--no-progress]
 
 SPM (:mod:`nrsfm.solvers.spm`) with ``shape_objective="nuclear"`` (its default, the authors' method) and
 ``"partial"`` (:func:`nrsfm.solvers.spm.shape_partial`) on every CMU file (or the synthetic stand-ins of

@@ -105,7 +105,8 @@ def test_a_reference_handed_over_is_used_instead_of_solving_it(monkeypatch):
     assert handed.info["K"] == solved.info["K"] and handed.info["agreement"] == pytest.approx(solved.info["agreement"])
     np.testing.assert_allclose(handed.points_3d, solved.points_3d)
     cut = dataclasses.replace(reference, points_3d=reference.points_3d[:, :11])
-    with pytest.raises(ValueError, match=r"expected a Reconstruction with shapes of shape \(40, 12, 3\) .*, got \(40, 11"):
+    with pytest.raises(ValueError, match=r"expected a Reconstruction with shapes of shape \(40, 12, 3\) .*, "
+                                         r"got \(40, 11"):
         starts.remember_solution(seq, "empnd", cut)
 
 
