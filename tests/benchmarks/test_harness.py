@@ -418,7 +418,8 @@ def test_pr_iterations_names_the_best_stopping_rule_on_the_cmu_cells_alone(tmp_p
     rules = ["max_iter=2", "max_iter=20", "tol=0.01"]
     assert [(r["set"], r["sequence"], r["rule"]) for r in data["rows"]] == [
         *(("cmu", "tiny", q) for q in rules), *(("validation", "human-S1-walking-turn30", q) for q in rules)]
-    assert all(r["iterations"] <= int(r["rule"][9:]) for r in data["rows"] if r["rule"].startswith("max_iter"))
+    assert all(r["iterations"] <= int(r["rule"].removeprefix("max_iter=")) for r in data["rows"]
+               if r["rule"].startswith("max_iter="))
     cmu = {r["rule"]: r["e3d"] for r in data["rows"] if r["set"] == "cmu"}
     assert data["cmu_best"] == min(cmu, key=cmu.get)
     assert data["cmu_geometric_mean"] == {q: pytest.approx(v) for q, v in cmu.items()}
