@@ -90,7 +90,9 @@ def _tols(text: str) -> tuple[float, ...]:
 
 
 def _gmean(values: list[float]) -> float:
-    return float(np.exp(np.mean(np.log(values)))) if values else float("nan")
+    from scipy.stats import gmean
+
+    return float(gmean(values)) if values else float("nan")
 
 
 def summarise(rows: list[dict], rules: list[str]) -> tuple[list[list], str | None, dict[str, float]]:
