@@ -1,6 +1,6 @@
 """Every solver at its default settings beside its best fixed K, on the tuning set and on a validation set.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.defaults [--set validation|cmu] [--root DIR] [--jobs N]
+    OMP_NUM_THREADS=1 python -m benchmarks.defaults [--set validation|test|cmu] [--root DIR] [--jobs N]
         [--methods a,b] [--missing 0,0.2] [--fill auto|reference|lowrank] [--k-max 12] [--out DIR] [--rerun]
         [--no-progress]
 
@@ -9,7 +9,9 @@ were chosen on the CMU files (``--set cmu``, the tuning set). The validation set
 the default) is motion nobody tuned them on, :data:`VALIDATION`: 300 frames (30 s at 10 fps) of Human3.6M
 training subjects (S1, S5-S8; the test subject S9 is not used), 17 joints, seen by an orthographic camera
 that turns steadily by 30-120 degrees about the vertical axis (:func:`nrsfm.datasets.synthetic.orbit_sequence`),
-plus two synthetic faces. Without Human3.6M the motions are the synthetic humans' (same turns).
+plus two synthetic faces. Without Human3.6M the motions are the synthetic humans' (same turns). The test set
+(``--set test``, :data:`TEST`) is held out from every choice, the validation set's included: the five actions the
+validation set does not use, each on two of the training subjects, turns of 30-120 degrees, and two other faces.
 
 Each solver runs at its defaults (K = 0 where it has a K); CSF2, SPM and EM-PPCA also at every fixed K from
 1 to ``--k-max`` that fits the sequence (3K < min(2F, P); K <= 5 on 17 joints). The table gives the camera-frame
@@ -43,11 +45,19 @@ log = logging.getLogger("benchmarks.defaults")
 VALIDATION = (("S1", "Walking", 30), ("S1", "Eating", 120), ("S5", "Directions", 60), ("S5", "Phoning", 90),
               ("S6", "Greeting", 45), ("S6", "SittingDown", 105), ("S7", "Discussion", 75), ("S7", "WalkDog", 120),
               ("S8", "Posing", 30), ("S8", "Smoking", 90))
-#: The synthetic humans' motions standing in for :data:`VALIDATION`'s without Human3.6M, in order.
+#: The test motions, held out from every choice: the five Human3.6M actions :data:`VALIDATION` does not use (in
+#: alphabetical order), each on two training subjects (the i-th action on the i-th and (i + 2)-th of S1, S5-S8),
+#: turns 30-120 degrees in steps of 10 in that order.
+TEST = (("S1", "Photo", 30), ("S6", "Photo", 40), ("S5", "Purchases", 50), ("S7", "Purchases", 60),
+        ("S6", "Sitting", 70), ("S8", "Sitting", 80), ("S7", "Waiting", 90), ("S1", "Waiting", 100),
+        ("S8", "WalkTogether", 110), ("S5", "WalkTogether", 120))
+#: The synthetic humans' motions standing in for :data:`VALIDATION`'s and :data:`TEST`'s without Human3.6M, in
+#: order (the test set's starting at the fourth).
 STAND_IN_MOTIONS = ("walking", "sitting_down", "reaching", "bending", "turning", "waving")
 #: Two synthetic faces (300 frames each; the classic benchmark's stand-in face is the first of the generator, not
-#: used here).
+#: used here) in the validation set, two others in the test set.
 FACES = (1, 2)
+TEST_FACES = (3, 4)
 N_FRAMES = 300
 #: Solvers with a number of basis shapes ``K`` (0: automatic), swept over fixed K.
 WITH_K = ("csf2", "spm", "emppca")
@@ -55,21 +65,24 @@ WITH_K = ("csf2", "spm", "emppca")
 WITH_FILL = ("csf2", "spm")
 
 
-def validation_jobs(root: str | None) -> tuple[Path | None, list[str]]:
-    """The validation sequences as jobs for :func:`load_job`: ``h36m:ROOT:SUBJECT:ACTION:TURN`` when
-    Human3.6M is found under ``root`` (or ``$NRSFM_DATA``), else ``human:SUBJECT:MOTION:TURN`` stand-ins; then
-    ``face:I``."""
+def validation_jobs(root: str | None, which: str = "validation") -> tuple[Path | None, list[str]]:
+    """The validation sequences (``which="test"``: the test sequences) as jobs for :func:`load_job`:
+    ``h36m:ROOT:SUBJECT:ACTION:TURN`` when Human3.6M is found under ``root`` (or ``$NRSFM_DATA``), else
+    ``human:SUBJECT:MOTION:TURN`` stand-ins; then ``face:I``."""
     from nrsfm.datasets import find_dataset
     from nrsfm.datasets.paths import data_root
 
+    if which not in ("validation", "test"):
+        raise ValueError(f"expected the set 'validation' or 'test', got {which!r}")
+    motions, faces, shift = (VALIDATION, FACES, 0) if which == "validation" else (TEST, TEST_FACES, 3)
     folder = find_dataset("h36m", root, required=False) if (root or data_root()) else None
     if folder is not None:
-        jobs = [f"h36m:{folder}:{s}:{a}:{t}" for s, a, t in VALIDATION]
+        jobs = [f"h36m:{folder}:{s}:{a}:{t}" for s, a, t in motions]
     else:
-        log.info("defaults: no Human3.6M data: the validation motions are the synthetic humans'")
-        jobs = [f"human:{s}:{STAND_IN_MOTIONS[i % len(STAND_IN_MOTIONS)]}:{t}"
-                for i, (s, _, t) in enumerate(VALIDATION)]
-    return folder, jobs + [f"face:{i}" for i in FACES]
+        log.info("defaults: no Human3.6M data: the %s motions are the synthetic humans'", which)
+        jobs = [f"human:{s}:{STAND_IN_MOTIONS[(i + shift) % len(STAND_IN_MOTIONS)]}:{t}"
+                for i, (s, _, t) in enumerate(motions)]
+    return folder, jobs + [f"face:{i}" for i in faces]
 
 
 def study_over_both_sets(name: str, doc: str, argv: list[str] | None,
@@ -192,8 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks.common import add_run_arguments
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.defaults", description=__doc__.split("\n\n")[0])
-    p.add_argument("--set", choices=("validation", "cmu"), default="validation", dest="which",
-                   help="the validation set (default) or the CMU files the defaults were tuned on")
+    p.add_argument("--set", choices=("validation", "test", "cmu"), default="validation", dest="which",
+                   help="the validation set (default), the held-out test set or the CMU files the defaults were "
+                        "tuned on")
     p.add_argument("--root", help="data folder holding h36m/ and nrsfm/ (default: $NRSFM_DATA)")
     p.add_argument("--jobs", type=_jobs, default=1, help="parallel cells (joblib)")
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
@@ -212,8 +226,8 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise ValueError(f"--methods: expected names among {available_solvers()}, got {', '.join(unknown)}")
         missing = parse_fractions(args.missing, "--missing")
-        if args.which == "validation":
-            folder, jobs = validation_jobs(args.root)
+        if args.which != "cmu":
+            folder, jobs = validation_jobs(args.root, args.which)
         else:
             folder, jobs = benchmark_sequences(args.root, None, "defaults")
     except (NRSfMError, ValueError) as exc:
@@ -250,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
                 lines.append(f"- {m}, {100 * miss:.0f}% missing: default within 10% of the best fixed K on {within} "
                              f"of {len(s)} sequences; worst ratio {max(x['ratio'] for x in s):.2f}, median "
                              f"{np.median([x['ratio'] for x in s]):.2f}")
-    where = ("the validation set" if args.which == "validation" else "the CMU files (the tuning set)") + \
+    where = {"validation": "the validation set", "test": "the held-out test set",
+             "cmu": "the CMU files (the tuning set)"}[args.which] + \
         (f", {folder}" if folder is not None else ", synthetic stand-ins")
     text = (f"### Every solver at its defaults against its best fixed K ({where})\n\nCamera-frame e3D. "
             f"'best fixed K' is an oracle (chosen with the ground truth), over K = 1..{args.k_max} with "
