@@ -396,6 +396,26 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     assert "not run:" in text
 
 
+def test_defaults_test_set_is_held_out_from_the_validation_set(tmp_path, capsys, monkeypatch):
+    val = {a for _, a, _ in defaults.VALIDATION}
+    assert len(defaults.TEST) == 10 and not val & {a for _, a, _ in defaults.TEST}
+    assert not set(defaults.FACES) & set(defaults.TEST_FACES)
+    _tiny_validation_set(monkeypatch, 2)
+    monkeypatch.setattr(defaults, "TEST", defaults.TEST[:2])
+    monkeypatch.setattr(defaults, "TEST_FACES", (3,))
+    jobs = defaults.validation_jobs(None, "test")[1]
+    assert jobs == ["human:S1:bending:30", "human:S6:turning:40", "face:3"]
+    assert not set(jobs) & set(defaults.validation_jobs(None)[1])
+    with pytest.raises(ValueError, match="expected the set 'validation' or 'test', got 'cmu'"):
+        defaults.validation_jobs(None, "cmu")
+    monkeypatch.setattr(defaults, "TEST_FACES", ())
+    out = tmp_path / "d"
+    assert defaults.main(["--set", "test", "--methods", "rank3", "--out", str(out), "--no-progress"]) == 0
+    assert "(the held-out test set, synthetic stand-ins)" in capsys.readouterr().out
+    data = json.loads((out / "defaults.json").read_text())
+    assert [r["sequence"] for r in data["rows"]] == ["human-S1-bending-turn30", "human-S6-turning-turn40"]
+    assert data["meta"]["set"] == "test"
+
 
 def test_defaults_on_the_cmu_stand_ins_without_data(tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("NRSFM_DATA", raising=False)
