@@ -1,4 +1,4 @@
-"""Every solver at its default settings beside its best fixed K, on the tuning set and on a validation set.
+"""Every solver at its default settings beside its best fixed K, on the tuning set, a validation set and a test set.
 
     OMP_NUM_THREADS=1 python -m benchmarks.defaults [--set validation|test|cmu] [--root DIR] [--jobs N]
         [--methods a,b] [--missing 0,0.2] [--fill auto|reference|lowrank] [--k-max 12] [--out DIR] [--rerun]
@@ -46,7 +46,7 @@ VALIDATION = (("S1", "Walking", 30), ("S1", "Eating", 120), ("S5", "Directions",
               ("S6", "Greeting", 45), ("S6", "SittingDown", 105), ("S7", "Discussion", 75), ("S7", "WalkDog", 120),
               ("S8", "Posing", 30), ("S8", "Smoking", 90))
 #: The test motions, held out from every choice: the five Human3.6M actions :data:`VALIDATION` does not use (in
-#: alphabetical order), each on two training subjects (the i-th action on the i-th and (i + 2)-th of S1, S5-S8),
+#: alphabetical order), each on two training subjects (the i-th action on the i-th and (i + 2 mod 5)-th of S1, S5-S8),
 #: turns 30-120 degrees in steps of 10 in that order.
 TEST = (("S1", "Photo", 30), ("S6", "Photo", 40), ("S5", "Purchases", 50), ("S7", "Purchases", 60),
         ("S6", "Sitting", 70), ("S8", "Sitting", 80), ("S7", "Waiting", 90), ("S1", "Waiting", 100),
