@@ -10,7 +10,7 @@ import scipy.io
 from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, parse_fractions, run_cells
 from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_iterations,
-                                pr_sweep, spm_cameras, spm_shape)
+                                pr_sweep, reference_trust, spm_cameras, spm_shape)
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
@@ -690,6 +690,27 @@ def test_csf2_model_scores_every_variant_at_every_k(tmp_path, capsys, monkeypatc
     assert csf2_model.variant_cell({"1": 0.5, "2": 0.25, "3": 0.75}) == "0.2500 (2) – 0.7500"
     assert csf2_model.main(["--sequences", "nothing-like-this", "--out", str(out)]) == 2
     assert "--sequences: no validation sequence contains any of ['nothing-like-this']" in capsys.readouterr().err
+
+
+def test_reference_trust_ranks_the_rule_misses_by_the_references_disagreement(tmp_path, capsys, monkeypatch):
+    _tiny_validation_set(monkeypatch, 1)
+    monkeypatch.setattr(defaults, "TEST", defaults.TEST[:1])
+    out = tmp_path / "r"
+    assert reference_trust.main(["--k-max", "2", "--out", str(out), "--no-progress"]) == 0
+    assert "| set | sequence | d(EM-PND, PR) | EM-PND | PR | csf2 rule | spm rule |" in capsys.readouterr().out
+    data = json.loads((out / "reference_trust.json").read_text())
+    assert [r["set"] for r in data["rows"]] == ["validation", "test"]  # the faces left out
+    row = data["rows"][0]
+    seq = defaults.load_job(defaults.validation_jobs(None)[1][0])
+    empnd, pr = solve(seq, "empnd").points_3d, solve(seq, "pr").points_3d
+    assert row["disagreement"] == pytest.approx(e3d(pr, empnd))
+    assert row["distance"]["csf2"]["2"] == pytest.approx(e3d(solve(seq, "csf2", K=2).points_3d, empnd))
+    assert sorted(row["e3d"]["spm"]) == ["1", "2"] and reference_trust.rule_ratio(row, "spm")[0] == "2"
+    fake = [{"disagreement": d, "e3d": {"csf2": {"1": 1.0, "2": e}}, "distance": {"csf2": {"1": 0.1, "2": 0.5}}}
+            for d, e in ((0.3, 2.0), (0.9, 0.5), (0.5, 0.1))]
+    assert reference_trust.rule_ratio(fake[2], "csf2") == ("1", 10.0)  # K = 1 nearest EM-PND, ten times the best
+    assert reference_trust.ranks_of_misses(fake, "csf2") == [1, 2]  # d = 0.9 and 0.5 miss; at 0.3 K = 1 is best
+    assert reference_trust.main(["--k-max", "0", "--out", str(out)]) == 2
 
 
 def test_csf2_shape_step_with_the_true_cameras_recovers_exact_tracks():
