@@ -24,9 +24,10 @@ the reference and is passed over; so is a K too small to hold the motion. Cost: 
 per K (five on 17 joints, twelve on 37 or more points), in one :class:`joblib.Parallel` batch (one process
 unless the caller's ``joblib.parallel_config`` asks for more; ``nrsfm solve --jobs N``). CSF2's rank rule
 (``k_rule="rank"``) and SPM's energy rule (``k_rule="energy"``) cost one solve; the solvers that start from CSF2
-(EM-PND, PR, EM-PPCA) use the rank rule. SPM starts from K = 2 because its K = 1 resembled a poor EM-PND
-reconstruction where SPM's own K = 5 was three times better. Measured against the best fixed K in
-``benchmarks/RESULTS.md`` (``benchmarks.defaults``).
+(EM-PND, PR, EM-PPCA) use the rank rule. SPM starts from K = 2, its energy rule's floor: its K = 1, a shape
+close to rigid, can resemble a poor EM-PND reconstruction more than SPM's good Ks do. The rule is only as good as
+its reference: where EM-PND is far from the truth, it keeps the K nearest that error. Measured against the best
+fixed K in ``benchmarks/RESULTS.md`` (``benchmarks.defaults``, ``benchmarks.studies.reference_trust``).
 """
 
 from __future__ import annotations
