@@ -170,7 +170,8 @@ def run_cell(job: str, method: str, k: int | None, missing: float, fill: str = "
 
 
 def summarise(rows: list[dict]) -> tuple[list[list], list[dict]]:
-    """Per (sequence, method, missing): the default's e3D, the best fixed K's and their ratio."""
+    """Per (sequence, method, missing): the default's e3D, the best fixed K's, their ratio, and ``chance``: the share
+    of the fixed Ks within 10% of the best (how often a K drawn at random would be)."""
     groups: dict[tuple, dict] = {}
     for r in rows:
         g = groups.setdefault((r["sequence"], r["method"], r["missing"]), {"default": None, "fixed": {}})
@@ -192,7 +193,9 @@ def summarise(rows: list[dict]) -> tuple[list[list], list[dict]]:
                       f"{ratio:.2f}" if ratio is not None else "–", f"{d['seconds']:.1f}"])
         summary.append({"sequence": name, "method": method, "missing": missing, "e3d_default": d["e3d"],
                         "chosen_K": d.get("chosen_K"), "best_K": best,
-                        "e3d_best": fixed[best] if best is not None else None, "ratio": ratio})
+                        "e3d_best": fixed[best] if best is not None else None, "ratio": ratio,
+                        "chance": (sum(e <= 1.1 * fixed[best] for e in fixed.values()) / len(fixed)
+                                   if best is not None else None)})
     return table, summary
 
 
@@ -263,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
                 within = sum(x["ratio"] <= 1.1 for x in s)
                 lines.append(f"- {m}, {100 * miss:.0f}% missing: default within 10% of the best fixed K on {within} "
                              f"of {len(s)} sequences; worst ratio {max(x['ratio'] for x in s):.2f}, median "
-                             f"{np.median([x['ratio'] for x in s]):.2f}")
+                             f"{np.median([x['ratio'] for x in s]):.2f}; a K drawn at random: "
+                             f"{sum(x['chance'] for x in s):.2f} expected")
     where = {"validation": "the validation set", "test": "the held-out test set",
              "cmu": "the CMU files (the tuning set)"}[args.which] + \
         (f", {folder}" if folder is not None else ", synthetic stand-ins")

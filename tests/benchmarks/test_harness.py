@@ -389,6 +389,9 @@ def test_defaults_sets_each_default_beside_its_best_fixed_k(tmp_path, capsys, mo
     for s in csf2:
         assert s["best_K"] in (1, 2)
         np.testing.assert_allclose(s["ratio"], s["e3d_default"] / s["e3d_best"])
+        fixed = [r["e3d"] for r in data["rows"] if (r["sequence"], r["method"], r["missing"]) ==
+                 (s["sequence"], "csf2", s["missing"]) and r["K"] != "default"]
+        assert s["chance"] == sum(e <= 1.1 * s["e3d_best"] for e in fixed) / 2  # the share of K = 1, 2 within 10%
     rank3 = [r for r in data["rows"] if r["method"] == "rank3"]
     assert [r["status"] for r in rank3 if r["missing"] == 0] == ["ok"] * 2
     assert all(r["status"] == "not run" for r in rank3 if r["missing"] > 0)  # needs complete tracks: said so
