@@ -40,7 +40,8 @@ floating point) so that tolerances and damping mean the same in any units.
 
 Automatic K and d (``K = 0`` / ``d = 0``; the authors set both by hand): d = ceil(0.1 F) as in the authors' demos,
 at least K + 1. K by ``k_rule``: ``"agreement"`` (the default) solves every K from 1 to the cap and keeps the
-largest that agrees (within 5%) as well as any with a reconstruction that needs no K (:mod:`nrsfm.solvers.kselect`;
+largest that agrees (within 5%) as well as any with a reconstruction that needs no K, passing over the Ks whose
+depth reverses between frames more often than the steadiest K's (:mod:`nrsfm.solvers.kselect`;
 with missing points every K runs on the tracks that reconstruction completes, ``info["completion"] = "reference"``);
 ``"rank"`` takes K from the rank of the tracks (:func:`~nrsfm.solvers.starts.auto_k`, one solve; it takes its cap
 on real motion capture, and it is the rule of the CSF2 starts of other solvers). The settings that reproduce the

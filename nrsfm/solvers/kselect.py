@@ -8,10 +8,18 @@ The rule (``k_rule="agreement"``, the default of CSF2 and SPM with ``K = 0``):
    that ``benchmarks.defaults`` sweeps);
 3. measure each K's distance to the reference: the e3D between their camera-frame shapes
    (:func:`nrsfm.metrics.e3d`, one global rotation or reflection, divided by the reference's scale);
-4. keep the largest K whose distance is within :data:`TOLERANCE` (5%) of the smallest: a larger basis that agrees
-   as well holds more of the motion. The tolerance was chosen on the CMU files (CSF2 and SPM within 10% of their
-   best fixed K on all six, worst ratio 1.05, against 1.08 for the nearest K and 1.06 for 10%) and then
-   measured on the validation set of ``benchmarks.defaults``.
+4. pass over every K whose reconstruction reverses its depth between frames more often than the steadiest K's
+   does (:func:`depth_flips`: a fraction of frame pairs above ``max(2 * least, least +`` :data:`FLIP_MARGIN```)``);
+5. keep the largest remaining K whose distance is within :data:`TOLERANCE` (5%) of the smallest: a larger basis
+   that agrees as well holds more of the motion. The tolerance was chosen on the CMU files (CSF2 and SPM within
+   10% of their best fixed K on all six, worst ratio 1.05, against 1.08 for the nearest K and 1.06 for 10%) and
+   then measured on the validation set of ``benchmarks.defaults``.
+
+Step 4 guards against a reference that failed the same way as one K. Orthographic depth has no sign, and a solver
+can settle on the wrong sign in some frames; the shape then jumps to its mirror image, which a real motion
+seen frame after frame never does. EM-PND's reconstruction can do so on a walking person, and one K's
+reconstruction that shares the fault then lies nearest it. The guard needs the frames in temporal order; in an
+unordered set every K "flips" about as often, and the ``2 * least`` bound then passes over none.
 
 Missing points: EM-PND takes them as they are; the Ks are then all solved on one set of complete tracks, the
 visible points kept and each missing one filled by the reference's projection (:func:`fill_missing`), instead of
@@ -46,8 +54,11 @@ from nrsfm.sequence import Sequence
 
 #: The largest K the agreement rule tries.
 K_MAX = 12
-#: Step 4 of the rule: the largest K whose distance to the reference is at most ``1 + TOLERANCE`` times the least.
+#: Step 5 of the rule: the largest K whose distance to the reference is at most ``1 + TOLERANCE`` times the least.
 TOLERANCE = 0.05
+#: Step 4 of the rule: a K is passed over where its :func:`depth_flips` exceed ``max(2 * least, least +
+#: FLIP_MARGIN)``, ``least`` the smallest among the Ks (one frame pair in a hundred above a steady K's none).
+FLIP_MARGIN = 0.01
 
 
 def k_candidates(n_frames: int, n_points: int, k_max: int = K_MAX) -> range:
@@ -94,31 +105,55 @@ def _attempt(solve_k: Callable[[int], Reconstruction], k: int) -> Reconstruction
         return None
 
 
+def depth_flips(shapes: np.ndarray) -> float:
+    """The fraction of consecutive frame pairs in which `(F, P, 3)` camera-frame shapes reverse their depth: frame
+    f's shape, centred, is nearer (mean distance over points) to frame f - 1's with its depth negated than to frame
+    f - 1's itself. 0 for a single frame."""
+    x = np.asarray(shapes, dtype=np.float64)
+    x = x - x.mean(axis=1, keepdims=True)
+    if x.shape[0] < 2:
+        return 0.0
+    mirrored = x[:-1] * np.array([1.0, 1.0, -1.0])
+    same = np.linalg.norm(x[1:] - x[:-1], axis=2).mean(axis=1)  # (F - 1,)
+    flipped = np.linalg.norm(x[1:] - mirrored, axis=2).mean(axis=1)
+    return float((flipped < same).mean())
+
+
+def steady_ks(flips: dict[Any, float], margin: float = FLIP_MARGIN) -> list[Any]:
+    """Step 4 of the rule: the Ks of ``{K: depth_flips}`` whose fraction is at most ``max(2 * least, least +
+    margin)``."""
+    least = min(flips.values())
+    return [k for k, f in flips.items() if f <= max(2 * least, least + margin)]
+
+
 def agreeing_k(distance: dict[Any, float], tolerance: float = TOLERANCE) -> Any:
-    """Step 4 of the rule: the largest K of ``{K: distance to the reference}`` whose distance is within
+    """Step 5 of the rule: the largest K of ``{K: distance to the reference}`` whose distance is within
     ``1 + tolerance`` of the least (the keys compare as integers)."""
     least = min(distance.values())
     return max((k for k, d in distance.items() if d <= (1 + tolerance) * least), key=int)
 
 
 def _keep(ks: list[int], recs: list[Reconstruction | None],
-          reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
+          reference: np.ndarray) -> tuple[Reconstruction, dict[int, float], dict[int, float]]:
     from nrsfm.metrics import e3d
 
     dist = {k: float("nan") if rec is None else e3d(rec.points_3d, reference) for k, rec in zip(ks, recs)}
+    flips = {k: depth_flips(rec.points_3d) for k, rec in zip(ks, recs) if rec is not None}
     solved = [k for k, rec in zip(ks, recs) if rec is not None]
     if not solved:
         raise SolverError(f"automatic K: no K in {sorted(dist)} could be solved; pass K explicitly")
     finite = [k for k in solved if np.isfinite(dist[k])]
     if not finite:
-        return recs[ks.index(solved[0])], dist
-    return recs[ks.index(agreeing_k({k: dist[k] for k in finite}))], dist
+        return recs[ks.index(solved[0])], dist, flips
+    steady = steady_ks({k: flips[k] for k in finite})
+    return recs[ks.index(agreeing_k({k: dist[k] for k in steady}))], dist, flips
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
                 reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
-    """The reconstruction, among ``solve_k(k)`` for ``k`` in ``ks``, of the largest K within :data:`TOLERANCE` of
-    the least e3D to ``reference`` `(F, P, 3)` (the module docstring).
+    """The reconstruction, among ``solve_k(k)`` for ``k`` in ``ks``, of the largest K, among those that reverse
+    their depth no more often than the steadiest (:func:`steady_ks`), within :data:`TOLERANCE` of the least e3D to
+    ``reference`` `(F, P, 3)` (the module docstring).
 
     A K whose solve raises :class:`~nrsfm.errors.SolverError` is skipped (recorded as NaN). The solves go
     through :class:`joblib.Parallel` with joblib's default ``n_jobs``: one at a time in this process unless the
@@ -127,7 +162,7 @@ def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
     :func:`functools.partial` of a module function).
 
     Returns:
-        The kept reconstruction and every K's distance to the reference.
+        The kept reconstruction, every K's distance to the reference and every solved K's :func:`depth_flips`.
     """
     from joblib import Parallel, delayed
 
@@ -188,7 +223,8 @@ def solve_on_reference_fill(solve: Callable[[Sequence, Any], Reconstruction], se
 
 def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], fallback_rule: str) -> Reconstruction:
     """The registered ``solver`` on ``seq`` with the K among ``ks`` that agrees with EM-PND's reconstruction
-    (:func:`agreement_k`), the distances in ``info["agreement"]``. EM-PND runs in the same
+    (:func:`agreement_k`), the distances in ``info["agreement"]`` and each K's :func:`depth_flips` in
+    ``info["depth_flips"]``. EM-PND runs in the same
     :class:`joblib.Parallel` batch as the K solves unless this process has it
     (:func:`~nrsfm.solvers.starts.remembered_solution`), and is kept for the next solver on the same tracks. Where
     EM-PND refuses the tracks (degenerate input), ``params`` with ``k_rule=fallback_rule``, ``info["k_rule"]``
@@ -221,8 +257,8 @@ def solve_by_agreement(seq: Sequence, params: Any, solver: str, ks: list[int], f
         return rec
     if recs is None:
         recs = Parallel()(solves(seq if as_given else fill_missing(seq, reference.points_3d)))
-    rec, dist = _keep(list(ks), recs, reference.points_3d)
-    rec.info.update(k_rule="agreement", agreement=dist)
+    rec, dist, flips = _keep(list(ks), recs, reference.points_3d)
+    rec.info.update(k_rule="agreement", agreement=dist, depth_flips=flips)
     if not as_given:
         rec.info.update(completion="reference")
     return rec

@@ -37,7 +37,8 @@ default fills the tracks by EM-PND's reconstruction instead.
 
 K (``K = 0``), by ``k_rule``: ``"agreement"`` (the default) solves every K from 2 (the energy rule's floor) to
 12 with 3K < min(2F, P) and keeps the largest that agrees (within 5%) as well as any with EM-PND's
-reconstruction (:mod:`nrsfm.solvers.kselect`; with missing points every K runs on the tracks EM-PND's
+reconstruction, passing over the Ks whose depth reverses between frames more often than the steadiest K's
+(:mod:`nrsfm.solvers.kselect`; with missing points every K runs on the tracks EM-PND's
 reconstruction completes, not at rank 3K: ``info["completion"] = "reference"``);
 ``"energy"`` is :func:`auto_rank`, one solve: ``ceil(r / 3)`` for rank-deficient tracks of numerical rank ``r``,
 else the smallest K whose 3K singular values hold 99.5% of the energy. The authors' K per CMU file is a settings

@@ -10,7 +10,7 @@ from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.metrics import e3d
 from nrsfm.solvers import kselect, starts
-from nrsfm.solvers.kselect import agreement_k, k_candidates
+from nrsfm.solvers.kselect import agreement_k, depth_flips, k_candidates, steady_ks
 
 
 def test_agreement_keeps_the_k_nearest_the_reference_and_skips_a_failed_k():
@@ -23,11 +23,11 @@ def test_agreement_keeps_the_k_nearest_the_reference_and_skips_a_failed_k():
             raise SolverError("K = 4 does not fit")
         return Reconstruction(points_3d=reference + 0.1 * abs(k - 3) * noise, rotations=None, method="fake")
 
-    rec, dist = agreement_k(solve_k, range(1, 6), reference)
+    rec, dist, _ = agreement_k(solve_k, range(1, 6), reference)
     assert np.allclose(rec.points_3d, reference) and dist[3] < 1e-12
     assert np.isnan(dist[4]) and dist[1] > dist[2] > dist[3] and dist[5] > dist[3]
     # a reflection in depth is the same reconstruction (orthographic depth has no sign)
-    rec, dist = agreement_k(solve_k, [3], reference * np.array([1.0, 1.0, -1.0]))
+    rec, dist, _ = agreement_k(solve_k, [3], reference * np.array([1.0, 1.0, -1.0]))
     assert dist[3] < 1e-12
     with pytest.raises(SolverError, match="no K"):
         agreement_k(lambda k: solve_k(4), [4], reference)
@@ -42,9 +42,56 @@ def test_agreement_keeps_the_largest_k_within_the_tolerance_of_the_nearest():
     def solve_k(k):
         return Reconstruction(points_3d=reference + scale[k] * noise, rotations=None, method="fake")
 
-    rec, dist = agreement_k(solve_k, [1, 2, 3, 4], reference)
+    rec, dist, flips = agreement_k(solve_k, [1, 2, 3, 4], reference)
+    assert sorted(flips) == [1, 2, 3, 4]  # random shapes, not a motion: the flip guard passes over no K
     assert dist[1] < dist[2] <= (1 + kselect.TOLERANCE) * dist[1] < dist[4] < dist[3]
     assert np.allclose(rec.points_3d, solve_k(2).points_3d)
+
+
+def _walker(n_frames: int = 60) -> np.ndarray:
+    """`(F, 8, 3)` a rigid body with depth turning steadily about the vertical axis."""
+    rng = np.random.default_rng(3)
+    body = rng.standard_normal((8, 3))
+    t = np.linspace(0.0, 1.0, n_frames)
+    c, s = np.cos(t), np.sin(t)
+    rot = np.stack([np.stack([c, 0 * t, s], -1), np.tile([0.0, 1.0, 0.0], (n_frames, 1)),
+                    np.stack([-s, 0 * t, c], -1)], 1)  # (F, 3, 3)
+    return np.einsum("fij,pj->fpi", rot, body)
+
+
+def test_depth_flips_counts_the_frames_whose_depth_sign_reverses():
+    x = _walker()
+    assert depth_flips(x) == 0.0 and depth_flips(x[:1]) == 0.0
+    y = x.copy()
+    y[30:40, :, 2] *= -1  # a run of mirrored frames: two reversals, in and out
+    assert depth_flips(y) == pytest.approx(2 / 59)
+    y[::2, :, 2] *= -1  # every other frame mirrored
+    assert depth_flips(y) > 0.9
+    assert depth_flips(x * np.array([1.0, 1.0, -1.0])) == 0.0  # the whole sequence mirrored is still steady
+
+
+def test_steady_ks_pass_over_a_k_that_flips_more_than_the_steadiest():
+    assert steady_ks({2: 0.007, 3: 0.087, 4: 0.0, 5: 0.0}) == [2, 4, 5]  # least 0: up to FLIP_MARGIN
+    assert steady_ks({2: 0.064, 3: 0.030, 4: 0.007, 5: 0.020}) == [4]  # least .007: up to .017
+    assert steady_ks({1: 0.094, 2: 0.090, 3: 0.084}) == [1, 2, 3]  # all flip alike: up to twice the least
+    assert steady_ks({1: 0.5, 2: 0.45, 3: 0.55}) == [1, 2, 3]  # frames out of order: no K is passed over
+
+
+def test_agreement_passes_over_a_k_that_flips_even_where_it_is_nearest_the_reference():
+    truth = _walker()
+    rng = np.random.default_rng(4)
+    mirror = np.array([1.0, 1.0, -1.0])
+    flipping = truth.copy()
+    flipping[::7] *= mirror  # a reference that reverses depth in one frame of seven
+    noise = rng.standard_normal(truth.shape)
+
+    def solve_k(k):
+        shapes = flipping if k == 3 else truth + 0.02 * k * noise  # K = 3 shares the reference's fault
+        return Reconstruction(points_3d=shapes, rotations=None, method="fake")
+
+    rec, dist, flips = agreement_k(solve_k, [2, 3, 4], flipping)
+    assert dist[3] < 1e-12 < dist[2] and flips[3] > 0.2 and flips[2] == flips[4] == 0.0
+    assert np.allclose(rec.points_3d, solve_k(2).points_3d) or np.allclose(rec.points_3d, solve_k(4).points_3d)
 
 
 def test_k_candidates_keep_3k_below_the_frames_and_points():
@@ -60,8 +107,9 @@ def test_csf2_default_k_is_the_agreement_rule_and_finds_the_k_of_low_rank_tracks
     rec = solve(seq, "csf2")
     dist = rec.info["agreement"]
     assert rec.info["k_rule"] == "agreement" and sorted(dist) == [1, 2, 3]
-    least = min(dist.values())
-    assert rec.info["K"] == max(k for k, d in dist.items() if d <= (1 + kselect.TOLERANCE) * least)
+    steady = steady_ks(rec.info["depth_flips"])
+    least = min(dist[k] for k in steady)
+    assert rec.info["K"] == max(k for k in steady if dist[k] <= (1 + kselect.TOLERANCE) * least)
     assert e3d(rec.points_3d, seq.points_3d) <= 1.1 * min(e3d(solve(seq, "csf2", K=k).points_3d, seq.points_3d)
                                                           for k in (1, 2, 3))
     assert "agreement" not in solve(seq, "csf2", k_rule="rank").info
