@@ -14,8 +14,11 @@ fixed K up to the cap of ``benchmarks.defaults``, and records
 * each reconstruction's camera-frame e3D;
 * the disagreement ``d(EM-PND, PR)``: PR's e3D to EM-PND's reconstruction (:func:`nrsfm.metrics.e3d`, the
   distance the rule uses);
+* each reconstruction's depth flips (:func:`nrsfm.solvers.kselect.depth_flips`: the fraction of frame pairs
+  between which its depth reverses), EM-PND's among them;
 * the rule's K for CSF2 (from K = 1) and SPM (from K = 2), computed from the same solves as
-  :func:`nrsfm.solvers.kselect.agreeing_k` does on complete tracks, and its ratio to the best fixed K (an oracle).
+  :mod:`nrsfm.solvers.kselect` does on complete tracks (:func:`~nrsfm.solvers.kselect.steady_ks`, then
+  :func:`~nrsfm.solvers.kselect.agreeing_k`), and its ratio to the best fixed K (an oracle).
 
 The table lists the sequences by disagreement, largest first; the summary gives Spearman's rank correlation of the
 disagreement with EM-PND's e3D and, for each solver, the disagreement's rank among the sequences at every one
@@ -45,11 +48,12 @@ MISS = 1.1
 
 def run_one(job: str, k_max: int) -> dict:
     """EM-PND, PR, and CSF2 and SPM at every fixed K on one motion: e3D, the disagreement of EM-PND and PR, each
-    K's distance to EM-PND. Errors are recorded, never raised."""
+    K's distance to EM-PND, every reconstruction's depth flips. Errors are recorded, never raised."""
     import nrsfm
     from benchmarks.defaults import k_cap, load_job
     from nrsfm.errors import NRSfMError
     from nrsfm.metrics import e3d
+    from nrsfm.solvers.kselect import depth_flips
 
     seq = load_job(job)
     row = {"sequence": seq.name}
@@ -60,6 +64,7 @@ def run_one(job: str, k_max: int) -> dict:
         return {**row, "status": "not run", "why": str(exc)}
     truth: dict[str, dict[str, float]] = {m: {} for m in RULE_FROM}
     to_empnd: dict[str, dict[str, float]] = {m: {} for m in RULE_FROM}
+    flips: dict[str, dict[str, float]] = {m: {} for m in RULE_FROM}
     for m in RULE_FROM:
         for k in range(1, k_cap(seq.n_frames, seq.n_points, k_max) + 1):
             try:
@@ -69,20 +74,24 @@ def run_one(job: str, k_max: int) -> dict:
                 continue
             truth[m][str(k)] = e3d(shapes, seq.points_3d)
             to_empnd[m][str(k)] = e3d(shapes, refs["empnd"])
+            flips[m][str(k)] = depth_flips(shapes)
     return {**row, "status": "ok", "reference_e3d": {m: e3d(r, seq.points_3d) for m, r in refs.items()},
-            "disagreement": e3d(refs["pr"], refs["empnd"]), "e3d": truth, "distance": to_empnd,
+            "disagreement": e3d(refs["pr"], refs["empnd"]), "e3d": truth, "distance": to_empnd, "flips": flips,
+            "reference_flips": {m: depth_flips(r) for m, r in refs.items()},
             "seconds": time.perf_counter() - t0}
 
 
 def rule_ratio(row: dict, solver: str) -> tuple[str, float] | None:
     """(the agreement rule's K, its e3D over the best fixed K's) for ``solver`` on one cell, None where no K of
-    the rule's range was solved."""
-    from nrsfm.solvers.kselect import agreeing_k
+    the rule's range was solved. A row without depth flips passes over no K."""
+    from nrsfm.solvers.kselect import agreeing_k, steady_ks
 
     dist = {k: d for k, d in row["distance"][solver].items() if int(k) >= RULE_FROM[solver]}
     if not dist:
         return None
-    k = agreeing_k(dist)
+    flips = row.get("flips", {}).get(solver, {})
+    steady = steady_ks({k: flips.get(k, 0.0) for k in dist})
+    k = agreeing_k({k: dist[k] for k in steady})
     return k, row["e3d"][solver][k] / min(row["e3d"][solver].values())
 
 
@@ -128,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in sorted(rows, key=lambda r: -r["disagreement"]):
         rules = [rule_ratio(r, m) for m in RULE_FROM]
         table.append([r["set"], r["sequence"], f"{r['disagreement']:.3f}", f"{r['reference_e3d']['empnd']:.3f}",
-                      f"{r['reference_e3d']['pr']:.3f}",
+                      f"{r['reference_e3d']['pr']:.3f}", f"{r['reference_flips']['empnd']:.3f}",
                       *(f"{got[1]:.2f} ({got[0]})" if got else "–" for got in rules)])
     summary = {"sequences": len(rows)}
     if len(rows) > 1:
@@ -143,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                         f"{summary['spearman_disagreement_empnd_e3d']:.2f}")
     text = ("### EM-PND against PR as a check of the automatic K's reference\n\nComplete tracks, camera-frame e3D; "
             "by disagreement d(EM-PND, PR), largest first; the rule's ratio to the best fixed K (its K).\n\n"
-            + markdown_table(["set", "sequence", "d(EM-PND, PR)", "EM-PND", "PR", "csf2 rule", "spm rule"], table)
+            + markdown_table(["set", "sequence", "d(EM-PND, PR)", "EM-PND", "PR", "EM-PND's depth flips", "csf2 rule",
+                              "spm rule"], table)
             + "\n" + "".join(f"- {line}\n" for line in lines))
     write_outputs(Path(args.out), "reference_trust", text, rows, run_metadata(
         benchmark="the automatic K's reference: EM-PND against PR", data=str(sets[0][1] or "stand-ins"),

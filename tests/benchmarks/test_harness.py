@@ -14,7 +14,7 @@ from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_star
 from nrsfm import load_sequence, solve
 from nrsfm.datasets.synthetic import lowrank_sequence
 from nrsfm.metrics import e3d
-from nrsfm.solvers.kselect import agreeing_k
+from nrsfm.solvers.kselect import agreeing_k, depth_flips
 
 
 def _tiny_cmu_file(tmp_path, seq):
@@ -700,7 +700,8 @@ def test_reference_trust_ranks_the_rule_misses_by_the_references_disagreement(tm
     monkeypatch.setattr(defaults, "TEST", defaults.TEST[:1])
     out = tmp_path / "r"
     assert reference_trust.main(["--k-max", "2", "--out", str(out), "--no-progress"]) == 0
-    assert "| set | sequence | d(EM-PND, PR) | EM-PND | PR | csf2 rule | spm rule |" in capsys.readouterr().out
+    assert ("| set | sequence | d(EM-PND, PR) | EM-PND | PR | EM-PND's depth flips | csf2 rule | spm rule |"
+            in capsys.readouterr().out)
     data = json.loads((out / "reference_trust.json").read_text())
     assert [r["set"] for r in data["rows"]] == ["validation", "test"]  # the faces left out
     row = data["rows"][0]
@@ -709,10 +710,14 @@ def test_reference_trust_ranks_the_rule_misses_by_the_references_disagreement(tm
     assert row["disagreement"] == pytest.approx(e3d(pr, empnd))
     assert row["distance"]["csf2"]["2"] == pytest.approx(e3d(solve(seq, "csf2", K=2).points_3d, empnd))
     assert sorted(row["e3d"]["spm"]) == ["1", "2"] and reference_trust.rule_ratio(row, "spm")[0] == "2"
+    assert row["reference_flips"]["empnd"] == depth_flips(empnd) and row["flips"]["csf2"]["2"] == depth_flips(
+        solve(seq, "csf2", K=2).points_3d)
     fake = [{"disagreement": d, "e3d": {"csf2": {"1": 1.0, "2": e}}, "distance": {"csf2": {"1": 0.1, "2": 0.5}}}
             for d, e in ((0.3, 2.0), (0.9, 0.5), (0.5, 0.1))]
     assert reference_trust.rule_ratio(fake[2], "csf2") == ("1", 10.0)  # K = 1 nearest EM-PND, ten times the best
     assert reference_trust.ranks_of_misses(fake, "csf2") == [1, 2]  # d = 0.9 and 0.5 miss; at 0.3 K = 1 is best
+    fake[2]["flips"] = {"csf2": {"1": 0.2, "2": 0.0}}  # K = 1 reverses its depth: the rule passes over it
+    assert reference_trust.rule_ratio(fake[2], "csf2") == ("2", 1.0)
     assert reference_trust.main(["--k-max", "0", "--out", str(out)]) == 2
 
 
