@@ -409,7 +409,7 @@ def test_defaults_test_set_is_held_out_from_the_validation_set(tmp_path, capsys,
     jobs = defaults.validation_jobs(None, "test")[1]
     assert jobs == ["human:S1:bending:30", "human:S6:turning:40", "face:3"]
     assert not set(jobs) & set(defaults.validation_jobs(None)[1])
-    with pytest.raises(ValueError, match="expected the set 'validation' or 'test', got 'cmu'"):
+    with pytest.raises(ValueError, match="expected the set 'validation', 'test' or 'holdout', got 'cmu'"):
         defaults.validation_jobs(None, "cmu")
     monkeypatch.setattr(defaults, "TEST_FACES", ())
     out = tmp_path / "d"
@@ -418,6 +418,18 @@ def test_defaults_test_set_is_held_out_from_the_validation_set(tmp_path, capsys,
     data = json.loads((out / "defaults.json").read_text())
     assert [r["sequence"] for r in data["rows"]] == ["human-S1-bending-turn30", "human-S6-turning-turn40"]
     assert data["meta"]["set"] == "test"
+
+
+def test_defaults_holdout_set_is_a_subject_no_other_set_uses(monkeypatch):
+    monkeypatch.delenv("NRSFM_DATA", raising=False)
+    used = {s for s, _, _ in defaults.VALIDATION + defaults.TEST}
+    assert {s for s, _, _ in defaults.HOLDOUT} == {"S9"} and "S9" not in used
+    assert len({a for _, a, _ in defaults.HOLDOUT}) == 15
+    assert {t for _, _, t in defaults.HOLDOUT} == set(range(30, 121, 15))
+    assert not set(defaults.HOLDOUT_FACES) & set(defaults.FACES + defaults.TEST_FACES)
+    jobs = defaults.validation_jobs(None, "holdout")[1]
+    assert jobs[:2] == ["human:S9:walking:30", "human:S9:sitting_down:45"] and jobs[-2:] == ["face:5", "face:6"]
+    assert len(jobs) == 17 and defaults.load_job(jobs[-1]).name == "face-6"
 
 
 def test_defaults_on_the_cmu_stand_ins_without_data(tmp_path, capsys, monkeypatch):
