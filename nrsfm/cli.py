@@ -293,6 +293,15 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         if rec.params.get("K") == 0 and "K" in rec.info:
             rule = rec.info.get("k_rule")
             print(f"  K (automatic):        {rec.info['K']}" + (f" ({rule} rule)" if rule else ""))
+            flips = rec.info.get("depth_flips") or {}
+            if flips:
+                from nrsfm.solvers.kselect import steady_ks
+
+                steady = steady_ks(flips)
+                passed = [f"{k} ({100 * f:.1f}%)" for k, f in flips.items() if k not in steady]
+                if passed:
+                    print(f"  Ks passed over:       {', '.join(passed)}: depth reverses between frames more often "
+                          f"than the steadiest K's ({100 * min(flips.values()):.1f}% of frame pairs)")
         if metrics:
             print(f"  e3D (camera frame):   {metrics['e3d']:.6g}")
             if "e3d_object" in metrics:

@@ -163,11 +163,29 @@ def test_info_json_and_synth(tmp_path, capsys):
         assert info["frames"] == 12 and info["ground_truth"] is True and info["valid"] is True
 
 
+def test_solve_states_the_ks_the_automatic_k_passed_over(tmp_path, capsys, monkeypatch):
+    from nrsfm.solvers import kselect
+
+    path = lowrank_sequence(40, 12, 2, seed=3, noise=0.01).save(tmp_path / "seq.npz")
+    calls = []
+
+    def flips(shapes):  # K = 1, 2, 3 in turn: the third reverses its depth in half its frame pairs
+        calls.append(shapes)
+        return 0.5 if len(calls) == 3 else 0.0
+
+    monkeypatch.setattr(kselect, "depth_flips", flips)
+    code, out, err = _run(capsys, "solve", str(path), "-m", "csf2")
+    assert code == 0, err
+    assert re.search(r"K \(automatic\): +2 \(agreement rule\)", out)
+    assert "Ks passed over:       3 (50.0%): depth reverses" in out and "(0.0% of frame pairs)" in out
+
+
 def test_solve_states_the_automatic_k_and_its_rule(tmp_path, capsys):
     path = lowrank_sequence(40, 12, 2, seed=3, noise=0.01).save(tmp_path / "seq.npz")
     code, out, err = _run(capsys, "solve", str(path), "-m", "csf2")
     assert code == 0, err
     assert re.search(r"K \(automatic\): +[23] \(agreement rule\)", out)
+    assert "Ks passed over" not in out
     code, out, _ = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "k_rule=rank")
     assert "(rank rule)" in out
     code, out, _ = _run(capsys, "solve", str(path), "-m", "csf2", "--set", "K=3")
