@@ -17,8 +17,8 @@ fixed K up to the cap of ``benchmarks.defaults``, and records
 * each reconstruction's depth flips (:func:`nrsfm.solvers.kselect.depth_flips`: the fraction of frame pairs
   between which its depth reverses), EM-PND's among them;
 * the rule's K for CSF2 (from K = 1) and SPM (from K = 2), computed from the same solves as
-  :mod:`nrsfm.solvers.kselect` does on complete tracks (:func:`~nrsfm.solvers.kselect.steady_ks`, then
-  :func:`~nrsfm.solvers.kselect.agreeing_k`), and its ratio to the best fixed K (an oracle).
+  :mod:`nrsfm.solvers.kselect` does on complete tracks (:func:`~nrsfm.solvers.kselect.agreement_choice`), and its
+  ratio to the best fixed K (an oracle).
 
 The table lists the sequences by disagreement, largest first; the summary gives Spearman's rank correlation of the
 disagreement with EM-PND's e3D and, for each solver, the disagreement's rank among the sequences at every one
@@ -84,14 +84,13 @@ def run_one(job: str, k_max: int) -> dict:
 def rule_ratio(row: dict, solver: str) -> tuple[str, float] | None:
     """(the agreement rule's K, its e3D over the best fixed K's) for ``solver`` on one cell, None where no K of
     the rule's range was solved. A row without depth flips passes over no K."""
-    from nrsfm.solvers.kselect import agreeing_k, steady_ks
+    from nrsfm.solvers.kselect import agreement_choice
 
     dist = {k: d for k, d in row["distance"][solver].items() if int(k) >= RULE_FROM[solver]}
     if not dist:
         return None
     flips = row.get("flips", {}).get(solver, {})
-    steady = steady_ks({k: flips.get(k, 0.0) for k in dist})
-    k = agreeing_k({k: dist[k] for k in steady})
+    k = agreement_choice(dist, {k: flips.get(k, 0.0) for k in dist})
     return k, row["e3d"][solver][k] / min(row["e3d"][solver].values())
 
 

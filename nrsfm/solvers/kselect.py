@@ -135,6 +135,13 @@ def agreeing_k(distance: dict[Any, float], tolerance: float = TOLERANCE) -> Any:
     return max((k for k, d in distance.items() if d <= (1 + tolerance) * least), key=int)
 
 
+def agreement_choice(distance: dict[Any, float], flips: dict[Any, float]) -> Any:
+    """Steps 4 and 5 of the rule: :func:`agreeing_k` among the :func:`steady_ks` of ``{K: distance to the
+    reference}`` and ``{K: depth_flips}`` (every key of ``distance`` in ``flips``)."""
+    steady = steady_ks({k: flips[k] for k in distance})
+    return agreeing_k({k: distance[k] for k in steady})
+
+
 def _keep(ks: list[int], recs: list[Reconstruction | None],
           reference: np.ndarray) -> tuple[Reconstruction, dict[int, float], dict[int, float]]:
     from nrsfm.metrics import e3d
@@ -147,8 +154,7 @@ def _keep(ks: list[int], recs: list[Reconstruction | None],
     finite = [k for k in solved if np.isfinite(dist[k])]
     if not finite:
         return recs[ks.index(solved[0])], dist, flips
-    steady = steady_ks({k: flips[k] for k in finite})
-    return recs[ks.index(agreeing_k({k: dist[k] for k in steady}))], dist, flips
+    return recs[ks.index(agreement_choice({k: dist[k] for k in finite}, flips))], dist, flips
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
