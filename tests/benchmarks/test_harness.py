@@ -300,7 +300,8 @@ def test_auto_k_scores_every_k_and_each_rule(tmp_path, capsys, monkeypatch):
     out = tmp_path / "out"
     assert auto_k.main(["--root", str(tmp_path / "data"), "--out", str(out), "--no-progress"]) == 0
     text = capsys.readouterr().out
-    assert "| smooth:3:2:0.01 | 40 / 9 | " in text and "| tiny | 6 / – | " in text and "| tiny+0.01 | 9 / – |" in text
+    assert "| smooth:3:2:0.01 | 40 / 9 | " in text and "| tiny | 6 / – | " in text
+    assert "| tiny+0.01 | 9 / – |" in text
     data = json.loads((out / "auto_k.json").read_text())
     assert [(r["sequence"], r["K"]) for r in data["rows"]] == (
         [("smooth:3:2:0.01", k) for k in range(1, 9)] + [(n, k) for n in ("tiny", "tiny+0.01") for k in (1, 2, 3)])
@@ -694,15 +695,20 @@ def test_csf2_model_scores_every_variant_at_every_k(tmp_path, capsys, monkeypatc
     out = tmp_path / "m"
     args = ["--k-max", "2", "--sequences", "walking", "--out", str(out), "--no-progress"]
     assert csf2_model.main(args) == 0
-    assert "| sequence | EM-PND | SPM | csf2 | spm cameras | empnd cameras | d = 0.2F | d = 0.4F |" in \
-        capsys.readouterr().out
+    assert "| sequence | EM-PND | SPM | csf2 | spm cameras | empnd cameras | d = 0.2F | d = 0.4F | steadiest K |" \
+        in capsys.readouterr().out
     rows = json.loads((out / "csf2_model.json").read_text())["rows"]
     assert [r["sequence"] for r in rows] == ["human-S1-walking-turn30"]  # --sequences kept one of the two
     assert {v: sorted(e) for v, e in rows[0]["e3d"].items()} == {v: ["1", "2"] for v in csf2_model.VARIANTS}
     seq = defaults.load_job(defaults.validation_jobs(None)[1][0])
     assert rows[0]["e3d"]["csf2"]["2"] == pytest.approx(e3d(solve(seq, "csf2", K=2).points_3d, seq.points_3d))
     assert rows[0]["reference_e3d"]["spm"] == pytest.approx(e3d(solve(seq, "spm").points_3d, seq.points_3d))
+    full = solve(seq, "csf2", K=2).points_3d
+    assert rows[0]["split_distance"]["2"] == pytest.approx(np.mean(
+        [e3d(solve(seq.select_frames(slice(i, None, 2)), "csf2", K=2).points_3d, full[i::2]) for i in (0, 1)]))
     assert csf2_model.variant_cell({"1": 0.5, "2": 0.25, "3": 0.75}) == "0.2500 (2) – 0.7500"
+    assert csf2_model.steadiest_cell({"1": 0.1, "2": 0.3}, {"1": 0.5, "2": 0.25}) == "1 (2.00)"
+    assert csf2_model.steadiest_cell({}, {"1": 0.5}) == "–"
     assert csf2_model.main(["--sequences", "nothing-like-this", "--out", str(out)]) == 2
     assert "--sequences: no validation sequence contains any of ['nothing-like-this']" in capsys.readouterr().err
 
