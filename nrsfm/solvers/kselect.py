@@ -158,7 +158,7 @@ def _keep(ks: list[int], recs: list[Reconstruction | None],
 
 
 def agreement_k(solve_k: Callable[[int], Reconstruction], ks: Iterable[int],
-                reference: np.ndarray) -> tuple[Reconstruction, dict[int, float]]:
+                reference: np.ndarray) -> tuple[Reconstruction, dict[int, float], dict[int, float]]:
     """The reconstruction, among ``solve_k(k)`` for ``k`` in ``ks``, of the largest K, among those that reverse
     their depth no more often than the steadiest (:func:`steady_ks`), within :data:`TOLERANCE` of the least e3D to
     ``reference`` `(F, P, 3)` (the module docstring).
