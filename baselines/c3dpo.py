@@ -279,8 +279,9 @@ class TrainStep:
     With ``cuda_graph`` the iteration is captured as a CUDA graph, once per learning rate, and replayed: one launch
     in place of the many small kernel launches that dominate an op-by-op iteration on a GPU. The replay does the
     same arithmetic on the same rows; its random rotations come from another part of the CUDA generator's stream.
-    Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm statistics and the
-    momentum put back as they were), as CUDA graphs need. SGD only (Adam keeps its step count on the host).
+    Each capture first runs :func:`warm_up` (three iterations, then the model, its batch-norm statistics, the
+    momentum and the random generator put back as they were), as CUDA graphs need. SGD only (Adam keeps its step
+    count on the host).
 
     With ``compile`` the forward and backward passes are compiled by ``torch.compile`` (Inductor fuses the
     batch norms, ReLUs, casts and losses into fewer kernels; the first iterations pay the compilation). Its random
@@ -332,11 +333,22 @@ class TrainStep:
         self.graph, self.graph_lr = graph, lr
 
 
+def _device_rng(device: torch.device) -> torch.Generator:
+    """The default random generator of ``device`` (CPU or CUDA): the one the model's random rotations come from."""
+    if device.type != "cuda":
+        return torch.default_generator
+    return torch.cuda.default_generators[torch.cuda.current_device() if device.index is None else device.index]
+
+
 def warm_up(step: TrainStep, n: int) -> None:
     """Run ``n`` iterations of ``step`` on its ``idx`` rows, then put the model's parameters and batch-norm
-    statistics and the optimiser's momentum back as they were (in place, so that their memory stays where a CUDA
-    graph reads it); momentum that did not exist before is zero, which gives SGD's first step exactly."""
+    statistics, the optimiser's momentum and the device's random generator back as they were (in place, so that
+    their memory stays where a CUDA graph reads it); momentum that did not exist before is zero, which gives SGD's
+    first step exactly. The random numbers that follow are thus those an iteration without the warm-up draws, and a
+    training resumed from a checkpoint (which captures anew) draws the rotations of an uninterrupted one."""
     model, opt = step.model, step.opt
+    generator = _device_rng(step.idx.device)
+    rng_state = generator.get_state()
     saved = {k: t.detach().clone() for k, t in model.state_dict().items()}
     params = [p for group in opt.param_groups for p in group["params"]]
     momentum = [opt.state[p].get("momentum_buffer") if p in opt.state else None for p in params]
@@ -350,6 +362,7 @@ def warm_up(step: TrainStep, n: int) -> None:
             buf = opt.state[p].get("momentum_buffer") if p in opt.state else None
             if buf is not None:
                 buf.copy_(b) if b is not None else buf.zero_()
+    generator.set_state(rng_state)
 
 
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
@@ -387,7 +400,9 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         start, history, monitored = state["iteration"], state["history"], state.get("monitor", [])
         rows = state.get("rows")
         rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())  # map_location moved it to the training device
+        if device.type == "cuda" and state.get("cuda_rng") is not None:  # the rotations are drawn on the GPU
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
     v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
     model.train()
@@ -415,7 +430,8 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         if ckpt is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                          "history": history, "monitor": monitored, "config": config.key(), "rows": rows,
-                         "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, ckpt)
+                         "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                         "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
               "cuda_graph": cuda_graph, "compile": compile, "history": history, "monitor": monitored}
