@@ -33,12 +33,12 @@ def cache_config(config) -> dict:
     return out
 
 
-def _predict(model, data, split: Split) -> list[np.ndarray]:
+def _predict(model, data, split: Split, ctx: RunContext) -> list[np.ndarray]:
     from prn.train import predict, predict_images
 
     if split.input_type == "rgb":
         return [predict_images(model, im) for im in split.test_images]
-    return [predict(model, *data.prepare_inputs(seq)) for seq in split.test_inputs]
+    return [predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) for seq in split.test_inputs]
 
 
 def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.ndarray]:
@@ -66,7 +66,7 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
         ctx.timings[f"{name} ({split.input_type})"] = {
             "cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
             "iterations_per_second": res.iterations_per_second, "cache": str(cache)}
-    return _predict(model, data, split)
+    return _predict(model, data, split, ctx)
 
 
 @register_method("PRN-FCN", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN trained with the PR loss, lambda = 0.05")
@@ -116,7 +116,7 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
              "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
-    return _predict(model, data, split)
+    return _predict(model, data, split, ctx)
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:

@@ -87,6 +87,7 @@ class RunContext:
     c3dpo_inputs: str = "centred"  # the authors' (centred, one global scale); "prn": each frame by its xy norm
     missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
     missing_in_loss: bool = True  # PRN rows: dropped points weigh 0 in the data term too (False: input only)
+    normalise_on: str = "visible"  # PRN rows: test inputs normalised on their visible points, or "all" (Table S1)
     width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
     point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)
     label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels

@@ -85,9 +85,21 @@ class TrainingSet:
     input_points: np.ndarray | None = None  # indices of the input points kept (e.g. 16 of 17 for SH)
     images: object = None  # PRN-CNN: an image source, (N, H, W, 3) uint8, one image per frame (prn.images)
 
-    def prepare_inputs(self, seq: Sequence) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised `(F, P_in, 2)` inputs and `(F, P_in)` weights of a test sequence, as in training."""
-        x, _ = normalize_2d(seq.points_2d, seq.visibility)
+    def prepare_inputs(self, seq: Sequence, normalise_on: str = "visible") -> tuple[np.ndarray, np.ndarray]:
+        """Normalised `(F, P_in, 2)` inputs and `(F, P_in)` weights of a test sequence.
+
+        ``normalise_on="visible"``: each frame centred and scaled on its visible points, as the training set's
+        frames are. ``"all"``: centred and scaled on all its points, the missing ones included, which are then set
+        to 0, as a network trained with ``missing_points`` sees its inputs (the points it drops were normalised
+        with the rest); this reads the 2D of the missing points, so it applies where they were dropped on purpose
+        (supplementary Table S1), not to points that were never observed.
+        """
+        if normalise_on not in ("visible", "all"):
+            raise ValidationError(f"normalise_on: expected 'visible' or 'all', got {normalise_on!r}")
+        if normalise_on == "all":
+            x = normalize_2d(seq.points_2d)[0] * (seq.weights > 0)[..., None]
+        else:
+            x, _ = normalize_2d(seq.points_2d, seq.visibility)
         keep = np.arange(seq.n_points) if self.input_points is None else self.input_points
         return x[:, keep], seq.weights[:, keep]
 

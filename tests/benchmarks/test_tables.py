@@ -32,6 +32,10 @@ def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, cap
     assert "| PRN-FCN, missing joints | – |" in text
     assert parts[0.0]["visible_alone"] == pytest.approx(avg[0.0])  # nothing missing: the same frame as the MPJPE
     assert parts[0.0]["test_complete"] == pytest.approx(avg[0.0])
+    # test inputs normalised on their visible points: another input than training's, another error
+    assert parts[0.0]["normalised_on_visible"] == pytest.approx(avg[0.0])
+    assert np.isfinite(parts[0.2]["normalised_on_visible"]) and parts[0.2]["normalised_on_visible"] != avg[0.2]
+    assert "| PRN-FCN, all joints, each test input centred and scaled on its visible points |" in text
     assert np.isfinite(parts[0.2]["test_complete"]) and parts[0.2]["test_complete"] != pytest.approx(avg[0.2])
     assert "| PRN-FCN, all joints, the test inputs complete (points missing in training only) |" in text
     caches = [t["cache"] for per in data["meta"]["timings"].values() for t in per.values()]

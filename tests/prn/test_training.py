@@ -25,6 +25,26 @@ def test_normalisation_roundtrip():
     np.testing.assert_allclose(denormalize(y, seq.points_3d), seq.points_3d - seq.points_3d.mean(1, keepdims=True))
 
 
+def test_test_inputs_normalised_on_visible_points_or_on_all_as_a_training_sample_drops_them(small_set):
+    from nrsfm.datasets.synthetic import drop_entries
+
+    seq = human_sequences(("S9",), ("walking",), (1,), n_frames=10)[0]
+    dropped = drop_entries(seq, 0.3)
+    seen = dropped.weights > 0
+    x_vis, w = small_set.prepare_inputs(dropped)
+    x_all, w_all = small_set.prepare_inputs(dropped, "all")
+    np.testing.assert_array_equal(w, w_all)
+    # "all": the complete frame's normalisation with the missing points zeroed, as train() drops points
+    np.testing.assert_allclose(x_all, normalize_2d(seq.points_2d)[0] * seen[..., None])
+    # "visible": centred and of unit norm on the visible points alone
+    np.testing.assert_allclose((x_vis * seen[..., None]).sum(1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(x_vis.reshape(10, -1), axis=1), 1.0)
+    assert not np.allclose(x_vis, x_all)
+    np.testing.assert_allclose(small_set.prepare_inputs(seq, "all")[0], small_set.prepare_inputs(seq)[0])
+    with pytest.raises(ValidationError, match="normalise_on: expected 'visible' or 'all'"):
+        small_set.prepare_inputs(seq, "none")
+
+
 def test_multiview_groups_cycle_cameras_half_a_second_apart(small_set):
     assert len(small_set.streams) == 4  # 2 subjects x 2 takes
     assert all(s.shape[0] == 4 for s in small_set.streams)  # 4 cameras
