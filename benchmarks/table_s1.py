@@ -10,19 +10,19 @@ The supplementary material's protocol: every point goes missing at random with t
 training (each sample draws its own points: 0 in the input, weight 0 in the data term; ``TrainConfig.
 missing_points``) and in test (a fixed draw per sequence, :func:`nrsfm.datasets.synthetic.drop_entries`, so
 every method and run sees the same test points). A test frame's input is made as a training sample's: centred
-and scaled on all its points, then the missing ones set to 0 (``normalise_on="all"``: the normalisation reads
-the dropped points' 2D, as the paper's inputs "set to 0" do); the second table gives the same models' error when
-each test frame is centred and scaled on its visible points alone, as a frame whose points were never observed
-must be (a network trained on the first kind of input sees another distribution). ``--missing-in input`` reads
-the protocol the other way: a
-training sample's dropped points are 0 in the input only and the data term keeps their ground-truth 2D, as the
-paper's networks on Stacked Hourglass detections are trained against ground-truth 2D. The error is the PRN
-protocol's MPJPE over all 17 joints, the missing ones included (the network predicts every joint); a second table
-splits it into the joints visible in the input and the missing ones (:func:`by_visibility`) and gives each model's
-error on the complete test inputs (points missing in training only, a reading of the protocol that the paper's
-flat curve would fit). The ``GT 3D`` row (the same network supervised with ground-truth 3D, its inputs missing the
-same share of points) bounds what a single-frame network can make of a missing joint. Data, splits, rows and the
-cache of trained models are those of :mod:`benchmarks.table1`; one model is trained per row and ratio.
+and scaled on all its points, then the missing ones set to 0 (``normalise_on="all"``; the normalisation reads the
+dropped points' 2D, as the paper's inputs "set to 0" do). ``--missing-in input`` reads the protocol the other
+way: a training sample's dropped points are 0 in the input only and the data term keeps their ground-truth 2D,
+as the paper's networks on Stacked Hourglass detections are trained against ground-truth 2D.
+
+The error is the PRN protocol's MPJPE over all 17 joints, the missing ones included (the network predicts every
+joint). A second table splits it into the joints visible in the input and the missing ones
+(:func:`by_visibility`), and gives each model's error on the same inputs centred and scaled on their visible
+points alone (as a frame whose points were never observed must be; the network was trained on the other kind)
+and on the complete test inputs (points missing in training only). The ``GT 3D`` row (the same network
+supervised with ground-truth 3D, its inputs missing the same share of points) bounds what a single-frame network
+can make of a missing joint. Data, splits, rows and the cache of trained models are those of
+:mod:`benchmarks.table1`; one model is trained per row and ratio.
 """
 
 from __future__ import annotations
