@@ -54,7 +54,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from nrsfm.device import indices_to, pick_device
+from nrsfm.device import indices_to, pick_device, restore_rng_state, rng_state
 from nrsfm.errors import ValidationError
 from nrsfm.procrustes import rotation_exp
 from prn.train import atomic_save
@@ -333,13 +333,6 @@ class TrainStep:
         self.graph, self.graph_lr = graph, lr
 
 
-def _device_rng(device: torch.device) -> torch.Generator:
-    """The default random generator of ``device`` (CPU or CUDA): the one the model's random rotations come from."""
-    if device.type != "cuda":
-        return torch.default_generator
-    return torch.cuda.default_generators[torch.cuda.current_device() if device.index is None else device.index]
-
-
 def warm_up(step: TrainStep, n: int) -> None:
     """Run ``n`` iterations of ``step`` on its ``idx`` rows, then put the model's parameters and batch-norm
     statistics, the optimiser's momentum and the device's random generator back as they were (in place, so that
@@ -347,14 +340,14 @@ def warm_up(step: TrainStep, n: int) -> None:
     first step exactly. The random numbers that follow are thus those an iteration without the warm-up draws, and a
     training resumed from a checkpoint (which captures anew) draws the rotations of an uninterrupted one."""
     model, opt = step.model, step.opt
-    generator = _device_rng(step.idx.device)
-    rng_state = generator.get_state()
     saved = {k: t.detach().clone() for k, t in model.state_dict().items()}
     params = [p for group in opt.param_groups for p in group["params"]]
     momentum = [opt.state[p].get("momentum_buffer") if p in opt.state else None for p in params]
     momentum = [None if b is None else b.clone() for b in momentum]
-    for _ in range(n):
-        step.eager(step.idx)
+    device = step.idx.device
+    with torch.random.fork_rng(devices=[device.index] if device.type == "cuda" else [], device_type="cuda"):
+        for _ in range(n):
+            step.eager(step.idx)
     with torch.no_grad():
         for k, t in model.state_dict().items():
             t.copy_(saved[k])
@@ -362,7 +355,6 @@ def warm_up(step: TrainStep, n: int) -> None:
             buf = opt.state[p].get("momentum_buffer") if p in opt.state else None
             if buf is not None:
                 buf.copy_(b) if b is not None else buf.zero_()
-    generator.set_state(rng_state)
 
 
 def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, out_dir: str | os.PathLike | None,
@@ -400,9 +392,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         start, history, monitored = state["iteration"], state["history"], state.get("monitor", [])
         rows = state.get("rows")
         rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"].cpu())  # map_location moved it to the training device
-        if device.type == "cuda" and state.get("cuda_rng") is not None:  # the rotations are drawn on the GPU
-            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)
+        restore_rng_state(state, device)  # on a GPU the rotations are drawn by its generator
     w_all = torch.as_tensor(_centre(inputs, weights) * config.keypoint_rescale, dtype=torch.float32, device=device)
     v_all = torch.as_tensor(weights > 0, dtype=torch.float32, device=device)
     model.train()
@@ -430,8 +420,7 @@ def train_c3dpo(inputs: np.ndarray, weights: np.ndarray, config: C3DPOConfig, ou
         if ckpt is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                          "history": history, "monitor": monitored, "config": config.key(), "rows": rows,
-                         "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
-                         "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}, ckpt)
+                         "numpy_rng": rng.bit_generator.state, **rng_state(device)}, ckpt)
     bar.close()
     record = {"seconds": time.perf_counter() - t0, "iterations_run": config.iterations - start,
               "cuda_graph": cuda_graph, "compile": compile, "history": history, "monitor": monitored}

@@ -44,3 +44,21 @@ def indices_to(indices, device):
     if device.type != "cuda":
         return idx
     return idx.pin_memory().to(device, non_blocking=True)
+
+
+def rng_state(device) -> dict:
+    """torch's random generators that a training on ``device`` draws from, for a checkpoint: ``torch_rng`` (the
+    CPU's) and ``cuda_rng`` (the GPU's, None off a GPU)."""
+    import torch
+
+    return {"torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}
+
+
+def restore_rng_state(state: dict, device) -> None:
+    """Put back the generators :func:`rng_state` saved in ``state`` (a checkpoint loaded to ``device``)."""
+    import torch
+
+    torch.set_rng_state(state["torch_rng"].cpu())  # map_location moved it to the training device
+    if device.type == "cuda" and state.get("cuda_rng") is not None:
+        torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)

@@ -30,7 +30,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from nrsfm.device import indices_to, pick_device
+from nrsfm.device import indices_to, pick_device, restore_rng_state, rng_state
 from nrsfm.errors import NRSfMError, ValidationError
 from prn.data import TrainingSet
 from prn.loss import PRLossParts, pr_loss
@@ -250,9 +250,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         opt.load_state_dict(state["optimizer"])
         start, history = state["iteration"], state["history"]
         rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"].cpu())  # map_location moved it to the training device
-        if device.type == "cuda" and state.get("cuda_rng") is not None:
-            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), device)
+        restore_rng_state(state, device)
         log.info("resumed from %s at iteration %d", ckpt_path, start)
 
     if objective is not None:
@@ -322,8 +320,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         if ckpt_path is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                           "history": history, "config": dataclasses.asdict(config),
-                          "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
-                          "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None}, ckpt_path)
+                          "numpy_rng": rng.bit_generator.state, **rng_state(device)}, ckpt_path)
     bar.close()
     seconds = time.perf_counter() - t_begin
     run = max(end - start, 0)

@@ -21,6 +21,7 @@ here: they see the world frame, in which the subject walks and turns, while an N
 A rule for K by stability is scored beside them: CSF2 at each K also solves the odd and the even frames alone,
 and a K's *split distance* is the mean e3D of those two solves to its full solve on the same frames. The column
 ``steadiest K`` gives the K of the least split distance and its e3D over the least e3D of ``csf2``.
+
 ``--sequences`` keeps the sequences whose name contains one of the comma-separated words. Cells are saved and
 resumed as in ``benchmarks.classic``; outputs in ``runs/csf2_model``. Without data the motions are the synthetic
 stand-ins of ``benchmarks.defaults``.
