@@ -18,7 +18,14 @@ on the Stiefel manifold (``R <- polar(B + R (L I - C))``). All of it is batched 
 
 Initialisation (``init``): ``"csf2"`` (default) takes the cameras from CSF2 and the mean and modes from a PCA of
 CSF2's object-frame shapes (Torresani et al. start from a rigid fit, whose cameras can be far off on real motion);
-the rigid rank-3 factorisation (``"rigid"``) is the fallback for tiny sequences. K: ``DEFAULT_K`` unless given.
+the rigid rank-3 factorisation (``"rigid"``) is the fallback for tiny sequences.
+
+K, unless given: ``DEFAULT_K`` (at most a quarter of the frames), except where the centred tracks have an exact rank
+r (noise-free; :func:`~nrsfm.solvers.starts.exact_rank`: one SVD, or with missing points a ladder of rank fits,
+about a second on the CMU files). The shapes then span the K' = :func:`~nrsfm.solvers.starts.k_for_rank` rank-3
+bases that CSF2's rank rule gives r, and the model's mean and K modes span K + 1: K = K' - 1 is kept where its fit
+is exact (noise deviation at most ``EXACT_FIT`` of the tracks' RMS: the mean is one of the bases), else K = K'
+(shapes whose span does not hold their mean).
 """
 
 from __future__ import annotations
@@ -35,12 +42,15 @@ from nrsfm.lowrank import impute_lowrank
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 from nrsfm.solvers.registry import register, require_visible_points
-from nrsfm.solvers.starts import csf2_reconstruction
+from nrsfm.solvers.starts import csf2_reconstruction, exact_rank, k_for_rank
 
 
-#: K when not given: the Gaussian prior on the coefficients keeps unused modes small, so a generous K is safe
-#: (chosen on the CMU files among 5, 10 and 15).
+#: K when not given and the tracks are not exactly low-rank: the Gaussian prior on the coefficients keeps unused
+#: modes small, so a generous K is safe (chosen on the CMU files among 5, 10 and 15).
 DEFAULT_K = 10
+#: Where the tracks are exactly low-rank: a fit is exact when its noise deviation is at most this fraction of the
+#: RMS of the centred visible tracks.
+EXACT_FIT = 1e-4
 
 
 @dataclass(frozen=True)
@@ -94,13 +104,32 @@ def _procrustean_projection(modes: np.ndarray, mean: np.ndarray) -> np.ndarray:
           handles_missing=True)
 def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     """EM-PPCA on an orthographic sequence (missing points allowed). See the module docstring."""
+    require_visible_points(seq, "emppca")
+    if params.K:
+        return _em(seq, params, params.K)
+    vis = np.repeat(seq.weights > 0, 2, axis=0)  # (2F, P)
+    wm = seq.measurement_matrix()
+    rank = exact_rank(wm, vis)
+    if not rank:
+        return _em(seq, params, min(DEFAULT_K, max(1, seq.n_frames // 4)))
+    bases = k_for_rank(rank, rank)
+    if bases > 1:
+        rec = _em(seq, params, bases - 1)
+        seen = np.where(vis, wm, 0.0)
+        centred = np.where(vis, seen - seen.sum(axis=1, keepdims=True) / np.maximum(vis.sum(axis=1, keepdims=True), 1),
+                           0.0)  # (2F, P) the visible entries about their row's mean
+        if rec.info["noise_std"] <= EXACT_FIT * np.sqrt((centred**2).sum() / vis.sum()):
+            return rec
+    return _em(seq, params, bases)
+
+
+def _em(seq: Sequence, params: EMPPCAParams, k: int) -> Reconstruction:
+    """EM-PPCA with ``k`` modes (at most 3P - 6 in all): the start and the EM iterations."""
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = (seq.weights > 0).astype(np.float64)  # (F, P)
-    require_visible_points(seq, "emppca")
     w = seq.points_2d.copy()  # (F, P, 2)
     wm = seq.measurement_matrix()
     filled = impute_lowrank(wm, np.repeat(vis > 0, 2, axis=0), 9) if vis.min() == 0 else wm
-    k = params.K or min(DEFAULT_K, max(1, n_frames // 4))
     k = max(1, min(k, (3 * n_points - 6) // 3))
     fp2 = filled.reshape(n_frames, 2, n_points).transpose(0, 2, 1)  # (F, P, 2)
     t = fp2.mean(axis=1)  # (F, 2)

@@ -11,6 +11,8 @@ when 3 does not divide ``r`` (a basis of deficient rank: rank 5 needs K = 3), at
 * missing points: the smallest rank that fits the visible entries exactly (:func:`~nrsfm.lowrank.visible_rank`),
   else the noise floor of a ladder of fits (:func:`~nrsfm.lowrank.noise_visible_rank`), else the cap.
 
+EM-PPCA takes its K from the exact rank alone (:func:`exact_rank`), where there is one.
+
 A solver that runs others (the consensus: EM-PND and PR) wraps them in :func:`shared_starts`, inside which each
 start and each noise rank is computed once per input and handed out as copies. CSF2 itself is reached through the
 registry, so this module imports no solver.
@@ -55,20 +57,36 @@ def auto_k(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_to
     there is none.
     """
     cap = max(1, min(k_max, (min(w.shape) - 1) // 3))
-    if mask is not None and not mask.all():
+    rank, s = _exact_rank(w, mask, k_max, rel_tol, max_frames, max_points, fit)
+    if not rank and s is None:
         max_rank = auto_k_max_rank(w, k_max)
-        rank = (fit or visible_rank(w, mask, max_rank, rel_tol=rel_tol, max_frames=max_frames,
-                                    max_points=max_points))[0]
-        if not rank:
-            rank = shared("noise_visible_rank", (w / power_of_two_unit(w, mask), mask, max_rank, max_frames,
-                                                  max_points),
-                           lambda: noise_visible_rank(w, mask, max_rank, max_frames=max_frames, max_points=max_points))
-    else:
-        s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
-        rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
-        if rank >= min(w.shape[0], w.shape[1] - 1):
-            rank = noise_rank(s, w.shape)
+        rank = shared("noise_visible_rank", (w / power_of_two_unit(w, mask), mask, max_rank, max_frames, max_points),
+                      lambda: noise_visible_rank(w, mask, max_rank, max_frames=max_frames, max_points=max_points))
+    elif not rank:
+        rank = noise_rank(s, w.shape)
     return k_for_rank(rank, cap)
+
+
+def exact_rank(w: np.ndarray, mask: np.ndarray | None = None, k_max: int = 8, rel_tol: float = 1e-6) -> int:
+    """The rank of the centred `(2F, P)` W where its tracks are exactly low-rank (noise-free), else 0.
+
+    Complete tracks: the number of singular values above ``rel_tol`` times the largest, where that is below
+    min(2F, P - 1). Missing entries (``mask`` False): :func:`~nrsfm.lowrank.visible_rank` up to
+    :func:`auto_k_max_rank`. The first step of :func:`auto_k`.
+    """
+    return _exact_rank(w, mask, k_max, rel_tol, 300, 60, None)[0]
+
+
+def _exact_rank(w: np.ndarray, mask: np.ndarray | None, k_max: int, rel_tol: float, max_frames: int,
+                max_points: int, fit: tuple[int, np.ndarray | None] | None) -> tuple[int, np.ndarray | None]:
+    """:func:`exact_rank` (0 where none) and, for complete tracks, the singular values of the centred W."""
+    if mask is not None and not mask.all():
+        rank = (fit or visible_rank(w, mask, auto_k_max_rank(w, k_max), rel_tol=rel_tol, max_frames=max_frames,
+                                    max_points=max_points))[0]
+        return rank, None
+    s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
+    rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
+    return (rank if rank < min(w.shape[0], w.shape[1] - 1) else 0), s
 
 
 def k_for_rank(rank: int, cap: int) -> int:

@@ -100,3 +100,15 @@ def test_consensus_computes_the_shared_csf2_start_once(monkeypatch):
     assert len(ranks) == 1  # PR's automatic K and CSF2's (in pixels / a power of two) share the noise rank
     solve(seq, "csf2", k_rule="rank", **kw)
     assert len(ranks) == 2  # outside the consensus: computed again
+
+
+def test_exact_rank_of_noise_free_tracks_and_none_for_noisy_ones():
+    from nrsfm.solvers.starts import exact_rank
+
+    seq = lowrank_sequence(60, 20, 3, seed=4)
+    w = seq.measurement_matrix()
+    assert exact_rank(w) == 9
+    missing = lowrank_sequence(60, 20, 3, seed=4, missing=0.2)
+    assert exact_rank(missing.measurement_matrix(), np.repeat(missing.weights > 0, 2, axis=0)) == 9
+    noisy = lowrank_sequence(60, 20, 3, seed=4, noise=0.01)
+    assert exact_rank(noisy.measurement_matrix()) == 0
