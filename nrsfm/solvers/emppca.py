@@ -22,7 +22,9 @@ the rigid rank-3 factorisation (``"rigid"``) is the fallback for tiny sequences.
 
 K, unless given: ``DEFAULT_K`` (at most a quarter of the frames), except where the centred tracks have an exact rank
 r (noise-free; :func:`~nrsfm.solvers.starts.exact_rank`: one SVD, or with missing points a ladder of rank fits,
-about a second on the CMU files). The shapes then span the K' = :func:`~nrsfm.solvers.starts.k_for_rank` rank-3
+about a second on the CMU files) at least a rank-3 basis below its largest, P - 1. (A smaller deficiency comes from
+points that depend on others, not from a shape model: Human3.6M's 17 joints, the pelvis midway between the hips,
+have rank 15.) The shapes then span the K' = :func:`~nrsfm.solvers.starts.k_for_rank` rank-3
 bases that CSF2's rank rule gives r, and the model's mean and K modes span K + 1: K = K' - 1 is kept where its fit
 is exact (noise deviation at most ``EXACT_FIT`` of the tracks' RMS: the mean is one of the bases), else K = K'
 (shapes whose span does not hold their mean).
@@ -110,7 +112,7 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
     vis = np.repeat(seq.weights > 0, 2, axis=0)  # (2F, P)
     wm = seq.measurement_matrix()
     rank = exact_rank(wm, vis)
-    if not rank:
+    if not rank or rank > seq.n_points - 4:  # a deficiency smaller than a basis: points that depend on others
         return _em(seq, params, min(DEFAULT_K, max(1, seq.n_frames // 4)))
     bases = k_for_rank(rank, rank)
     if bases > 1:

@@ -18,13 +18,15 @@ def test_emppca_recovers_a_noise_free_low_rank_sequence_and_handles_missing_poin
 
 
 def test_automatic_k_of_noise_free_tracks_is_exact():
-    """A mean and two modes (rank 9): K = 2, with and without missing points; noisy tracks keep DEFAULT_K."""
+    """A mean and two modes (rank 9): K = 2, with and without missing points; noisy tracks keep DEFAULT_K, and so
+    do 12 points of rank 9 (P - 3: a deficiency that points depending on others can make)."""
     for missing in (0.0, 0.2):
         seq = lowrank_sequence(120, 25, 3, seed=1, missing=missing)
         rec = solve(seq, "emppca")
         assert rec.info["K"] == 2
         assert e3d(rec.points_3d, seq.points_3d) < 1e-4
     assert solve(lowrank_sequence(120, 25, 3, seed=1, noise=0.01), "emppca").info["K"] == DEFAULT_K
+    assert solve(lowrank_sequence(120, 12, 3, seed=1), "emppca").info["K"] == DEFAULT_K
 
 
 def test_automatic_k_takes_one_more_mode_where_the_shapes_do_not_hold_their_mean():
