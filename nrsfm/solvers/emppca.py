@@ -24,10 +24,10 @@ K, unless given: ``DEFAULT_K`` (at most a quarter of the frames), except where t
 r (noise-free; :func:`~nrsfm.solvers.starts.exact_rank`: one SVD, or with missing points a ladder of rank fits,
 about a second on the CMU files) at least a rank-3 basis below its largest, P - 1. (A smaller deficiency comes from
 points that depend on others, not from a shape model: Human3.6M's 17 joints, the pelvis midway between the hips,
-have rank 15.) The shapes then span the K' = :func:`~nrsfm.solvers.starts.k_for_rank` rank-3
-bases that CSF2's rank rule gives r, and the model's mean and K modes span K + 1: K = K' - 1 is kept where its fit
-is exact (noise deviation at most ``EXACT_FIT`` of the tracks' RMS: the mean is one of the bases), else K = K'
-(shapes whose span does not hold their mean).
+have rank 15.) The shapes then span the K' = :func:`~nrsfm.solvers.starts.k_for_rank` rank-3 bases that CSF2's rank
+rule gives r, and the model's mean and K modes span K + 1: K = K' - 1 is kept where its fit is exact (noise
+deviation at most ``EXACT_FIT`` of the tracks' RMS: the mean is one of the bases), else K = K' (shapes whose span
+does not hold their mean).
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
 
 
 def _em(seq: Sequence, params: EMPPCAParams, k: int) -> Reconstruction:
-    """EM-PPCA with ``k`` modes (at most 3P - 6 in all): the start and the EM iterations."""
+    """EM-PPCA with ``k`` modes (at most P - 2): the start and the EM iterations."""
     n_frames, n_points = seq.n_frames, seq.n_points
     vis = (seq.weights > 0).astype(np.float64)  # (F, P)
     w = seq.points_2d.copy()  # (F, P, 2)
