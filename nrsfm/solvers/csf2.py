@@ -64,14 +64,14 @@ from threadpoolctl import threadpool_limits
 from nrsfm import progress
 from nrsfm.errors import SolverError, ValidationError
 from nrsfm.geometry import complete_rotation
-from nrsfm.lowrank import complete_lowrank, masked_lstsq, power_of_two_unit, visible_rank
+from nrsfm.lowrank import complete_lowrank, masked_lstsq, power_of_two_unit
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.sequence import Sequence
 from nrsfm.solvers.cameras import camera_rows
 from nrsfm.solvers.dct import dct_basis, dct_weighted_gram_blocks
 from nrsfm.solvers.kselect import FILLS, solve_on_reference_fill
 from nrsfm.solvers.registry import register, require_visible_points
-from nrsfm.solvers.starts import auto_k, auto_k_max_rank
+from nrsfm.solvers.starts import auto_k, auto_k_max_rank, shared_visible_rank
 
 
 #: How ``K = 0`` chooses K (:class:`CSF2Params`).
@@ -258,7 +258,7 @@ def solve_csf2(seq: Sequence, params: CSF2Params) -> Reconstruction:
     complete = bool(vis.all())
     # the visible entries' exact rank, if any: for the automatic K and the completion
     max_rank = min(auto_k_max_rank(w), 3 * params.K) if params.K else auto_k_max_rank(w)
-    fit = None if complete else visible_rank(w, mask, max_rank)
+    fit = None if complete else shared_visible_rank(w, mask, max_rank)
     k, d = _basis_sizes(w, mask, fit, params)
     full, completion = (w, "none") if complete else complete_lowrank(w, mask, 3 * k, fit)
     t = full.mean(axis=1, keepdims=True)  # (2F, 1) translations

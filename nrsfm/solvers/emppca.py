@@ -40,11 +40,11 @@ from nrsfm.errors import ValidationError
 from nrsfm.geometry import complete_rotation, nearest_rotation
 from nrsfm.progress import report
 from nrsfm.sequence import Sequence
-from nrsfm.lowrank import impute_lowrank
+from nrsfm.lowrank import impute_lowrank, power_of_two_unit
 from nrsfm.reconstruction import Reconstruction
 from nrsfm.solvers.rank3 import Rank3Params, solve_rank3
 from nrsfm.solvers.registry import register, require_visible_points
-from nrsfm.solvers.starts import csf2_reconstruction, exact_rank, k_for_rank
+from nrsfm.solvers.starts import csf2_reconstruction, exact_rank, k_for_rank, shared_starts
 
 
 #: K when not given and the tracks are not exactly low-rank: the Gaussian prior on the coefficients keeps unused
@@ -111,18 +111,23 @@ def solve_emppca(seq: Sequence, params: EMPPCAParams) -> Reconstruction:
         return _em(seq, params, params.K)
     vis = np.repeat(seq.weights > 0, 2, axis=0)  # (2F, P)
     wm = seq.measurement_matrix()
-    rank = exact_rank(wm, vis)
-    if not rank or rank > seq.n_points - 4:  # a deficiency smaller than a basis: points that depend on others
-        return _em(seq, params, min(DEFAULT_K, max(1, seq.n_frames // 4)))
-    bases = k_for_rank(rank, rank)
-    if bases > 1:
-        rec = _em(seq, params, bases - 1)
-        seen = np.where(vis, wm, 0.0)
-        centred = np.where(vis, seen - seen.sum(axis=1, keepdims=True) / np.maximum(vis.sum(axis=1, keepdims=True), 1),
-                           0.0)  # (2F, P) the visible entries about their row's mean
-        if rec.info["noise_std"] <= EXACT_FIT * np.sqrt((centred**2).sum() / vis.sum()):
-            return rec
-    return _em(seq, params, bases)
+    with shared_starts():  # the rank of tracks with missing points and CSF2's start, once for CSF2 and both Ks
+        rank = exact_rank(wm / power_of_two_unit(wm, vis), vis)  # in CSF2's units: its own rank, shared
+        if not rank or rank > seq.n_points - 4:  # a deficiency smaller than a basis: points that depend on others
+            return _em(seq, params, min(DEFAULT_K, max(1, seq.n_frames // 4)))
+        bases = k_for_rank(rank, rank)
+        if bases > 1:
+            rec = _em(seq, params, bases - 1)
+            if rec.info["noise_std"] <= EXACT_FIT * _centred_rms(wm, vis):
+                return rec
+        return _em(seq, params, bases)
+
+
+def _centred_rms(w: np.ndarray, vis: np.ndarray) -> float:
+    """The RMS of the visible entries of `(2F, P)` ``w`` (``vis`` True) about their row's mean."""
+    seen = np.where(vis, w, 0.0)
+    counts = np.maximum(vis.sum(axis=1, keepdims=True), 1)
+    return float(np.sqrt((np.where(vis, seen - seen.sum(axis=1, keepdims=True) / counts, 0.0)**2).sum() / vis.sum()))
 
 
 def _em(seq: Sequence, params: EMPPCAParams, k: int) -> Reconstruction:

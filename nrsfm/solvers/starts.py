@@ -13,9 +13,10 @@ when 3 does not divide ``r`` (a basis of deficient rank: rank 5 needs K = 3), at
 
 EM-PPCA takes its K from the exact rank alone (:func:`exact_rank`), where there is one.
 
-A solver that runs others (the consensus: EM-PND and PR) wraps them in :func:`shared_starts`, inside which each
-start and each noise rank is computed once per input and handed out as copies. CSF2 itself is reached through the
-registry, so this module imports no solver.
+A solver that runs others (the consensus: EM-PND and PR; EM-PPCA: CSF2 and its own K) wraps them in
+:func:`shared_starts`, inside which each start, each noise rank and each exact rank of tracks with missing points
+(:func:`shared_visible_rank`) is computed once per input. CSF2 itself is reached through the registry, so this
+module imports no solver.
 
 Whole reconstructions at a solver's defaults are kept too, for the last few inputs of the process
 (:func:`remember_solution`, :func:`remembered_solution`): the automatic K of CSF2 and SPM (EM-PND, its reference)
@@ -81,12 +82,20 @@ def _exact_rank(w: np.ndarray, mask: np.ndarray | None, k_max: int, rel_tol: flo
                 max_points: int, fit: tuple[int, np.ndarray | None] | None) -> tuple[int, np.ndarray | None]:
     """:func:`exact_rank` (0 where none) and, for complete tracks, the singular values of the centred W."""
     if mask is not None and not mask.all():
-        rank = (fit or visible_rank(w, mask, auto_k_max_rank(w, k_max), rel_tol=rel_tol, max_frames=max_frames,
-                                    max_points=max_points))[0]
+        rank = (fit or shared_visible_rank(w, mask, auto_k_max_rank(w, k_max), rel_tol, max_frames, max_points))[0]
         return rank, None
     s = np.linalg.svd(w - w.mean(axis=1, keepdims=True), compute_uv=False)
     rank = int(np.count_nonzero(s > rel_tol * s[0])) if s[0] > 0 else 1
     return (rank if rank < min(w.shape[0], w.shape[1] - 1) else 0), s
+
+
+def shared_visible_rank(w: np.ndarray, mask: np.ndarray, max_rank: int, rel_tol: float = 1e-6, max_frames: int = 300,
+                        max_points: int = 60) -> tuple[int, np.ndarray | None]:
+    """:func:`~nrsfm.lowrank.visible_rank` of `(2F, P)` ``w``, inside :func:`shared_starts` once per input (the
+    result is handed out as it is: read it, do not modify it)."""
+    return shared("visible_rank", (w, mask, max_rank, rel_tol, max_frames, max_points),
+                  lambda: visible_rank(w, mask, max_rank, rel_tol=rel_tol, max_frames=max_frames,
+                                       max_points=max_points))
 
 
 def k_for_rank(rank: int, cap: int) -> int:
@@ -117,7 +126,9 @@ def shared_starts():
     Solvers that run other solvers (the consensus: EM-PND and PR) start both from the same CSF2 reconstruction when
     points are missing. A start is known by the tracks' bytes, the visibility, K (the automatic K is stored under the
     K it chose too, where that K given would search the same ranks) and the other settings; the cache ends with the
-    block. So is the noise rank of :func:`auto_k` with missing points, which both solvers' automatic K compute.
+    block. So is the noise rank of :func:`auto_k` with missing points, which both solvers' automatic K compute, and
+    the exact rank of such tracks (:func:`shared_visible_rank`: EM-PPCA's K and its CSF2 start), and CSF2's whole
+    reconstruction (:func:`csf2_reconstruction`: EM-PPCA's start at two Ks).
     """
     token = _SHARED_STARTS.set({})
     try:
@@ -210,7 +221,10 @@ def csf2_start(seq: Sequence, K: int = 0, **overrides) -> np.ndarray:
 def csf2_reconstruction(seq: Sequence, K: int = 0, **overrides: Any) -> Reconstruction:
     """CSF2's :class:`~nrsfm.reconstruction.Reconstruction` of ``seq`` without the registry's input checks and
     timing (the caller has checked ``seq``): cameras and shapes for the solvers that start from both (EM-PPCA).
-    ``overrides``: other CSF2 parameters (``K = 0``: CSF2's rank rule unless ``k_rule`` says otherwise)."""
+    ``overrides``: other CSF2 parameters (``K = 0``: CSF2's rank rule unless ``k_rule`` says otherwise). Inside
+    :func:`shared_starts`, computed once per input and handed out as copies."""
     spec = get_solver("csf2")
-    return spec.solve.__wrapped__(seq, spec.params(K=K, **{"k_rule": "rank", **overrides}))
+    params = spec.params(K=K, **{"k_rule": "rank", **overrides})
+    rec = shared("csf2_reconstruction", (tracks_digest(seq), params), lambda: spec.solve.__wrapped__(seq, params))
+    return copy.deepcopy(rec) if _SHARED_STARTS.get() is not None else rec
 
