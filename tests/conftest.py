@@ -17,6 +17,20 @@ from hypothesis import settings
 settings.register_profile("nrsfm", deadline=None, max_examples=40, derandomize=True)
 settings.load_profile("nrsfm")
 
+_approx = pytest.approx
+
+
+def _approx_of_numbers(expected, *args, **kwargs):
+    """``pytest.approx`` refusing torch tensors on every pytest version (pytest 9 iterates the expected value, which
+    fails on a 0-d tensor, older releases accept it): compare ``float(t)`` or ``t.numpy()`` instead."""
+    if type(expected).__module__.split(".")[0] == "torch":
+        raise TypeError(f"pytest.approx: expected a number or NumPy array, got {type(expected).__name__}; "
+                        "compare float(t) or t.numpy()")
+    return _approx(expected, *args, **kwargs)
+
+
+pytest.approx = _approx_of_numbers
+
 
 def pytest_configure(config):
     if os.environ.get("PYTEST_XDIST_WORKER"):  # pools already started before the variables above took effect
