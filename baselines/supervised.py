@@ -52,8 +52,13 @@ class Supervised3D:
     def sample(self, rng: np.random.Generator) -> np.ndarray:
         return rng.choice(self.labelled, size=self.batch, replace=len(self.labelled) < self.batch)
 
-    def loss(self, pred: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-        return ((pred - self._targets[idx]) ** 2).sum(dim=2).mean()
+    def loss(self, pred: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
+        target = self._targets[idx]
+        if visible is not None:  # the input was normalised on these points: the target alike
+            from prn.train import renormalise
+
+            target = renormalise(target, visible, zero_missing=False)
+        return ((pred - target) ** 2).sum(dim=2).mean()
 
 
 def normalised_targets(shapes: list[np.ndarray]) -> np.ndarray:

@@ -40,10 +40,11 @@ def _rows(name: str, folder: Path) -> list[tuple[str, float | None, float | None
     """(row, ours, paper) of a finished table, read back from its JSON."""
     data = json.loads((folder / f"{name}.json").read_text())
     if name == "table1":
-        return [(f"{r['method']} ({r['input']})", r["per_action"]["Avg"]["mpjpe_mm"], r["paper_avg"])
-                for r in data["results"]]
+        return [(f"{r['method']} ({r['input']}, {r['protocol']} protocol)", r["per_action"]["Avg"]["mpjpe_mm"],
+                 r["paper_avg"]) for r in data["results"]]
     if name == "table_s1":
-        return [(f"{r['method']} ({100 * r['missing_ratio']:g}% missing)", r["per_action"]["Avg"]["mpjpe_mm"],
+        return [(f"{r['method']} ({100 * r['missing_ratio']:g}% missing, normalised on {r['variant']} points)",
+                 r["per_action"]["Avg"]["mpjpe_mm"],
                  r["paper_avg"] if data["meta"]["data"]["data"] == "h36m" else None) for r in data["results"]]
     real = not data["meta"]["data"]["data"].startswith("synthetic")
     return [(n, r["error"], data["paper"].get(n) if real else None) for n, r in data["results"].items()]

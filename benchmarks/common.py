@@ -265,6 +265,44 @@ def add_training_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(retrain=False)
     p.add_argument("--labels-dir", default=None,
                    help="the pseudo-labels' cache (default: <out>/labels); tables run together can share one")
+    p.add_argument("--compress-schedule", action="store_true",
+                   help="scale the lr step (the paper's x0.8 every 5,000 iterations) by --iterations / 70,000, so "
+                        "that a shorter run ends as far down the schedule as the paper's 70,000 (default: the "
+                        "paper's step whatever the count; the table states which)")
+
+
+def choose_data(args: argparse.Namespace, candidates: Sequence[tuple[str, tuple[str, ...]]],
+                table: str) -> str | None:
+    """Settle ``args.data`` and ``args.root`` for a table whose real data is one of ``candidates``, each (name,
+    dataset folders), in order of priority; returns the stand-in notice to print first, or None on real data.
+
+    ``--data`` as given (a real name without data then fails where it is loaded, saying where it looked);
+    otherwise the first candidate whose folders all lie under ``--root`` or ``$NRSFM_DATA``, else the embedded
+    synthetic stand-in. An explicit ``--root`` holding none of them is an error, not a silent stand-in.
+    """
+    from nrsfm.datasets import data_root, find_dataset
+    from nrsfm.errors import ValidationError
+
+    root = data_root(args.root)
+    if args.data is None and root is not None:
+        for name, folders in candidates:
+            if all(find_dataset(f, root, required=False) is not None for f in folders):
+                args.data = name
+                break
+        else:
+            if args.root is not None:
+                wanted = " or ".join("/".join(f) for _, f in candidates)
+                raise ValidationError(f"--root: expected {wanted} under {root}, found none; pass the folder that "
+                                      "holds it, or --data synthetic for the embedded stand-in")
+    if args.data is None:
+        args.data = "synthetic"
+    if args.data != "synthetic":
+        args.root = None if root is None else str(root)
+        return None
+    where = "no data folder given (--root or $NRSFM_DATA)" if root is None else \
+        f"{root} holds no {' or '.join('/'.join(f) for _, f in candidates)}"
+    return (f"{table}: the embedded synthetic stand-in ({where}): its numbers check the pipeline and the ordering; "
+            "they are not comparable with the paper's")
 
 
 def labels_dir(args: argparse.Namespace) -> Path | None:

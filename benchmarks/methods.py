@@ -10,7 +10,7 @@ import logging
 
 import numpy as np
 
-from benchmarks.registry import RunContext, Split, register_method, scaled_schedule
+from benchmarks.registry import Predictions, RunContext, Split, register_method, schedule
 
 log = logging.getLogger(__name__)
 
@@ -25,34 +25,54 @@ def _network(split: Split, ctx: RunContext) -> str:
 
 
 def cache_config(config) -> dict:
-    """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but ``missing_in_loss`` only where it is not
-    the default (so that models cached before the option existed stay valid)."""
+    """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but ``missing_in_loss`` and
+    ``missing_normalise`` only where they are not the default (so that models cached before the options existed
+    stay valid)."""
     out = dataclasses.asdict(config)
     if config.missing_in_loss:
         del out["missing_in_loss"]
+    if config.missing_normalise == "all":
+        del out["missing_normalise"]
     return out
 
 
-def _predict(model, data, split: Split, ctx: RunContext) -> list[np.ndarray]:
+def _config(ctx: RunContext, network: str, lam: float, **extra):
+    """The PRN recipe of ``ctx`` (:func:`benchmarks.registry.schedule`): iterations, schedule, alignment groups,
+    width, missing points and where they are normalised."""
+    missing = {"missing_points": ctx.missing_points}
+    if ctx.missing_points > 0:
+        missing["missing_normalise"] = ctx.normalise_on
+    return schedule(ctx.iterations, ctx.compress_schedule, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
+                    groups=ctx.groups, group_size=ctx.group_size, network=network, **missing, **extra)
+
+
+def _predict(model, data, split: Split, ctx: RunContext) -> Predictions:
+    """The test predictions; inputs normalised on their visible points where training points went missing and
+    were normalised the same way, scaled back by the ground truth's statistic over those points."""
+    from prn.data import denormalize
     from prn.train import predict, predict_images
 
     if split.input_type == "rgb":
-        return [predict_images(model, im) for im in split.test_images]
-    return [predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) for seq in split.test_inputs]
+        return Predictions(predict_images(model, im) for im in split.test_images)
+    out = Predictions(predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) for seq in split.test_inputs)
+    if ctx.missing_points > 0 and ctx.normalise_on == "visible":
+        out.millimetres = [denormalize(p, t.points_3d, s.weights > 0)
+                           for p, s, t in zip(out, split.test_inputs, split.test_truth)]
+    return out
 
 
-def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.ndarray]:
+def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: bool = False) -> list[np.ndarray]:
     from prn.data import build_training_set
     from prn.train import load_model, train
 
     network = _network(split, ctx)
     data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling,
-                              images=split.train_images if network != "fcn" else None)
-    config = scaled_schedule(ctx.iterations, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                             missing_points=ctx.missing_points, missing_in_loss=ctx.missing_in_loss,
-                             point_groups=ctx.point_groups, network=network)
-    cache = ctx.cache_dir(name, {"config": cache_config(config), "data": split.tag,
-                                 "input": split.input_type, "frames": data.description})
+                              images=split.train_images if network != "fcn" else None, scores=scores)
+    config = _config(ctx, network, lam, missing_in_loss=ctx.missing_in_loss, point_groups=ctx.point_groups)
+    key = {"config": cache_config(config), "data": split.tag, "input": split.input_type, "frames": data.description}
+    if scores:
+        key["scores"] = True
+    cache = ctx.cache_dir(name, key)
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
@@ -72,6 +92,21 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float) -> list[np.
 @register_method("PRN-FCN", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN trained with the PR loss, lambda = 0.05")
 def prn_fcn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _train_prn(split, ctx, "PRN-FCN", 0.05)
+
+
+def has_scores(seqs: list) -> bool:
+    """Whether the detections carry per-point scores: a visibility strictly between 0 and 1 somewhere."""
+    return any(s.visibility is not None and bool(((s.visibility > 0) & (s.visibility < 1)).any()) for s in seqs)
+
+
+@register_method("PRN-FCN-W", ("sh",), "PRN-FCN whose data term weighs each point by its detection score (the "
+                                       "input's visibility in (0, 1])")
+def prn_fcn_w(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    from benchmarks.registry import NotRun
+
+    if not has_scores(split.train_inputs):
+        raise NotRun("these detections carry no scores (every visibility is 0 or 1)")
+    return _train_prn(split, ctx, "PRN-FCN-W", 0.05, scores=True)
 
 
 @register_method("PRN-CNN", ("rgb",), "PRN-CNN (image backbone + PRN-FCN's head) trained with the PR loss, "
@@ -96,8 +131,7 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
 
     network = _network(split, ctx)
     images = split.train_images if network != "fcn" else None
-    config = scaled_schedule(ctx.iterations, lam=0.0, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                             missing_points=ctx.missing_points, network=network)
+    config = _config(ctx, network, 0.0)
     cache = ctx.cache_dir(name, {"config": cache_config(config), "data": split.tag,
                                  "input": split.input_type, "targets": key})
     model_path = cache / "model.pt"
@@ -175,70 +209,131 @@ def gt_3d(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _cached_supervised(split, ctx, "GT 3D", truth, {"targets": "ground truth"})
 
 
-def c3dpo_unit(train_inputs: list, inputs: str = "centred") -> float:
-    """C3DPO's one input scale: ``"centred"`` (the authors'): every frame keeps its size, all divided by the
-    training frames' median xy norm; ``"prn"``: 1 (each frame is divided by its own xy norm, as the other rows see
-    them)."""
+#: C3DPO's input normalisations: ``"hip"`` (the authors', after Kudo et al.: each frame centred on the hip and
+#: divided by its mean hip-to-joint distance), ``"centred"`` (centred, every frame divided by one global scale) and
+#: ``"prn"`` (PRN's: each frame centred and divided by its own xy norm).
+C3DPO_INPUTS = ("hip", "centred", "prn")
+
+
+def root_joint(seq) -> int | None:
+    """The index of the sequence's ``Hip`` joint, or None (no joint names, or no hip: then the mean of the visible
+    points stands in for it)."""
+    names = seq.joint_names or ()
+    return list(names).index("Hip") if "Hip" in names else None
+
+
+def hip_frame(points: np.ndarray, weights: np.ndarray, root: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Kudo et al.'s per-frame normalisation, which C3DPO's Human3.6M data used for its 2D inputs and, computed on
+    the 3D, to turn its errors into millimetres: the root joint's xy `(F, 1, 2)` (the mean of the visible points
+    where the root is None or hidden) and `(F,)` the mean xy distance of the other visible points to it.
+
+    Args:
+        points: `(F, P, 2)` or `(F, P, 3)` (only x, y are read); weights: `(F, P)` (0 = missing).
+    """
+    xy = np.nan_to_num(np.asarray(points, dtype=np.float64)[..., :2])
+    vis = np.asarray(weights) > 0
+    centre = (xy * vis[..., None]).sum(axis=1, keepdims=True) / np.maximum(vis.sum(axis=1), 1)[:, None, None]
+    others = vis.copy()
+    if root is not None:
+        has_root = vis[:, root]
+        centre = np.where(has_root[:, None, None], xy[:, root:root + 1], centre)
+        others[:, root] &= ~has_root
+    dist = np.linalg.norm(xy - centre, axis=2)
+    scale = (dist * others).sum(axis=1) / np.maximum(others.sum(axis=1), 1)
+    return centre, np.where(scale > 0, scale, 1.0)
+
+
+def c3dpo_unit(train_inputs: list, inputs: str = "hip") -> float:
+    """The one global scale of ``"centred"`` inputs (:data:`C3DPO_INPUTS`): the training frames' median xy norm;
+    1 for the per-frame normalisations."""
     from prn.data import normalize_2d
 
-    if inputs not in ("prn", "centred"):
-        raise ValueError(f"c3dpo_inputs: expected 'prn' or 'centred', got {inputs!r}")
-    if inputs == "prn":
+    if inputs not in C3DPO_INPUTS:
+        raise ValueError(f"c3dpo_inputs: expected one of {C3DPO_INPUTS}, got {inputs!r}")
+    if inputs != "centred":
         return 1.0
     return float(np.median(np.concatenate([normalize_2d(s.points_2d, s.visibility)[1] for s in train_inputs])))
 
 
-def c3dpo_inputs(seqs: list, unit: float, inputs: str = "centred") -> tuple[np.ndarray, np.ndarray]:
-    """`(N, P, 2)` keypoints and `(N, P)` weights of ``seqs`` as C3DPO reads them (:func:`c3dpo_unit`): every
-    point, the never-detected ones zero with visibility 0."""
+def c3dpo_inputs(seqs: list, unit: float, inputs: str = "hip") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(N, P, 2)` keypoints, `(N, P)` weights and `(N,)` per-frame scales of ``seqs`` as C3DPO reads them
+    (:data:`C3DPO_INPUTS`): every point, the never-detected ones zero with visibility 0; a keypoint times its
+    frame's scale is back in the data's units."""
     from prn.data import normalize_2d
 
     w = np.concatenate([s.weights for s in seqs])
     if inputs == "prn":
-        return np.concatenate([normalize_2d(s.points_2d, s.visibility)[0] for s in seqs]), w
-    return np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None] / unit, w
+        x, scale = zip(*(normalize_2d(s.points_2d, s.visibility) for s in seqs))
+        return np.concatenate(x), w, np.concatenate(scale)
+    pts = np.nan_to_num(np.concatenate([s.points_2d for s in seqs])) * (w > 0)[..., None]
+    if inputs == "centred":
+        return pts / unit, w, np.full(len(pts), unit)
+    out, scales = [], []
+    for s in seqs:
+        centre, scale = hip_frame(s.points_2d, s.weights, root_joint(s))
+        out.append((np.nan_to_num(s.points_2d) - centre) / scale[:, None, None] * (s.weights > 0)[..., None])
+        scales.append(scale)
+    return np.concatenate(out), w, np.concatenate(scales)
 
 
-def c3dpo_predict(model, seq, unit: float, inputs: str = "centred", replace_keypoints_with_input: bool = True
+def _c3dpo_shapes(model, seq, unit: float, inputs: str, replace_keypoints_with_input: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """`(F, P, 3)` shapes of C3DPO ``model`` for ``seq`` in its input units, and `(F,)` those units' scales."""
+    from baselines.c3dpo import predict_c3dpo
+
+    x, w, scale = c3dpo_inputs([seq], unit, inputs)
+    return predict_c3dpo(model, x, w, replace_keypoints_with_input=replace_keypoints_with_input), scale
+
+
+def c3dpo_predict(model, seq, unit: float, inputs: str = "hip", replace_keypoints_with_input: bool = True
                   ) -> np.ndarray:
     """`(F, P, 3)` shapes of C3DPO ``model`` for ``seq``, in PRN's per-frame units (as the harness scores them;
     ``replace_keypoints_with_input``: :func:`baselines.c3dpo.predict_c3dpo`)."""
-    from baselines.c3dpo import predict_c3dpo
     from prn.data import normalize_2d
 
-    pred = predict_c3dpo(model, *c3dpo_inputs([seq], unit, inputs),
-                         replace_keypoints_with_input=replace_keypoints_with_input)
-    return pred if inputs == "prn" else pred * unit / normalize_2d(seq.points_2d, seq.visibility)[1][:, None, None]
+    pred, scale = _c3dpo_shapes(model, seq, unit, inputs, replace_keypoints_with_input)
+    return pred * (scale / normalize_2d(seq.points_2d, seq.visibility)[1])[:, None, None]
+
+
+def c3dpo_test_predictions(model, split: Split, unit: float, inputs: str) -> Predictions:
+    """C3DPO's test predictions in PRN's per-frame units; with the authors' ``"hip"`` inputs, ``millimetres`` as
+    the authors scale them back: each frame times the ground truth's hip distance (:func:`hip_frame`) (the others: the PRN
+    protocol's, :func:`benchmarks.registry.millimetres`)."""
+    from prn.data import normalize_2d
+
+    out = Predictions()
+    mm = []
+    for seq, truth in zip(split.test_inputs, split.test_truth):
+        pred, scale = _c3dpo_shapes(model, seq, unit, inputs)
+        out.append(pred * (scale / normalize_2d(seq.points_2d, seq.visibility)[1])[:, None, None])
+        mm.append(pred * hip_frame(truth.points_3d, np.ones(truth.points_3d.shape[:2]), root_joint(truth))[1]
+                  [:, None, None])
+    if inputs == "hip":
+        out.millimetres = mm
+    return out
 
 
 @register_method("C3DPO", ("gt-ortho", "gt-persp", "sh"), "C3DPO (Novotny et al., ICCV 2019), reimplemented")
 def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     from baselines.c3dpo import PAPER_ITERATIONS, C3DPOConfig, load_c3dpo, train_c3dpo
-    from nrsfm.metrics import mpjpe_best_flip, stress
-    from prn.data import denormalize
+    from benchmarks.registry import millimetres
+    from nrsfm.metrics import mpjpe_prn
 
     unit = c3dpo_unit(split.train_inputs, ctx.c3dpo_inputs)
     truth_mm = np.concatenate([t.points_3d for t in split.test_truth])
 
-    def test_predictions(model):  # PRN's per-frame units, and millimetres
-        preds = [c3dpo_predict(model, seq, unit, ctx.c3dpo_inputs) for seq in split.test_inputs]
-        return preds, np.concatenate([denormalize(p, t.points_3d) for p, t in zip(preds, split.test_truth)])
-
     def test_error(model):  # a diagnostic along training (--c3dpo-monitor); nothing is chosen with it
-        from nrsfm.metrics import mpjpe_prn
+        preds = c3dpo_test_predictions(model, split, unit, ctx.c3dpo_inputs)
+        return {"test_mpjpe_mm": mpjpe_prn(np.concatenate(millimetres(preds, split.test_truth)), truth_mm)}
 
-        return {"test_mpjpe_mm": mpjpe_prn(test_predictions(model)[1], truth_mm)}
-
-    inputs, weights = c3dpo_inputs(split.train_inputs, unit, ctx.c3dpo_inputs)
+    inputs, weights, _ = c3dpo_inputs(split.train_inputs, unit, ctx.c3dpo_inputs)
     # the authors' 90 epochs, scaled as PRN's 70k iterations are, unless given
     iterations = ctx.c3dpo_iterations or max(1, round(ctx.iterations * PAPER_ITERATIONS / 70_000))
     config = C3DPOConfig(iterations=iterations, batch=ctx.c3dpo_batch, keypoint_rescale=ctx.c3dpo_rescale,
                          optimizer=ctx.c3dpo_optimizer, lr=ctx.c3dpo_lr, precision=ctx.c3dpo_precision,
-                         repeat=ctx.c3dpo_repeat,
-                         seed=ctx.seed, device=ctx.device,
+                         repeat=ctx.c3dpo_repeat, seed=ctx.seed, device=ctx.device,
                          checkpoint_every=max(100, iterations // 20))
-    cache = ctx.cache_dir("C3DPO", {"config": config.key(), "data": split.tag,
-                                    "input": split.input_type,
+    cache = ctx.cache_dir("C3DPO", {"config": config.key(), "data": split.tag, "input": split.input_type,
                                     "inputs": ctx.c3dpo_inputs})
     key = f"C3DPO ({split.input_type})"
     if (cache / "model.pt").exists() and not ctx.retrain:
@@ -254,8 +349,4 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
                             "cache": str(cache)}
     if info.get("monitor"):
         ctx.timings[key]["monitor"] = info["monitor"]
-    preds, pred_mm = test_predictions(model)
-    # C3DPO's own protocol beside the table's: root-centred MPJPE, better of raw and depth-flipped, and stress
-    ctx.timings[key]["own_protocol"] = {"mpjpe_best_flip_mm": mpjpe_best_flip(pred_mm, truth_mm),
-                                        "stress_mm": stress(pred_mm, truth_mm)}
-    return preds
+    return c3dpo_test_predictions(model, split, unit, ctx.c3dpo_inputs)

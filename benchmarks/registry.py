@@ -57,6 +57,32 @@ class Split:
     labels_tag: str = ""
 
 
+class NotRun(Exception):
+    """Raised by a row that cannot run on the data it was given; the table prints ``not run: <message>``."""
+
+
+class Predictions(list):
+    """A row's test predictions: one `(F, P, 3)` array per test sequence in PRN's per-frame units.
+
+    ``millimetres``, where set, holds the same shapes scaled back to the ground truth's units by the method's own
+    rule (C3DPO on the authors' inputs: each frame's mean hip distance; inputs normalised on their visible points:
+    the ground truth's statistic over those points); otherwise :func:`millimetres` applies the PRN protocol's
+    (each frame by the ground truth's xy Frobenius norm)."""
+
+    millimetres: list[np.ndarray] | None = None
+
+
+def millimetres(preds: list[np.ndarray], truth: list[Sequence]) -> list[np.ndarray]:
+    """`(F, P, 3)` predictions of ``preds`` in the ground truth's units, one per test sequence
+    (:class:`Predictions`)."""
+    from prn.data import denormalize
+
+    own = getattr(preds, "millimetres", None)
+    if own is not None:
+        return list(own)
+    return [denormalize(p, t.points_3d) for p, t in zip(preds, truth)]
+
+
 @dataclass
 class RunContext:
     """Options of one harness run: output folder (caches), iterations, seed, progress bars, parallel jobs (the
@@ -84,12 +110,15 @@ class RunContext:
     c3dpo_compile: bool = False  # compile C3DPO's forward and backward passes with torch.compile
     c3dpo_optimizer: str = "sgd"  # the authors' Human3.6M breed; "adam" is their code's other
     c3dpo_repeat: int = 1  # each C3DPO minibatch used for this many iterations (8: the authors' loader as it ran)
-    c3dpo_inputs: str = "centred"  # the authors' (centred, one global scale); "prn": each frame by its xy norm
+    c3dpo_inputs: str = "hip"  # methods.C3DPO_INPUTS: the authors' per-frame hip normalisation, "centred", "prn"
     missing_points: float = 0.0  # PRN rows: the fraction of points dropped per training sample (Table S1)
     missing_in_loss: bool = True  # PRN rows: dropped points weigh 0 in the data term too (False: input only)
     normalise_on: str = "visible"  # PRN rows: test inputs normalised on their visible points, or "all" (Table S1)
     width: int = 1024  # the network's hidden width (4096 for SURREAL, Table 4)
     point_groups: int = 1  # PRN rows: random point groups of the PR loss per iteration (dense shapes, Table 4)
+    compress_schedule: bool = False  # the lr step scaled by iterations / 70,000 (registry.schedule)
+    groups: int = 4  # PRN rows: alignment groups per minibatch (4 on Human3.6M and SURREAL; 1 on 300-VW's faces)
+    group_size: int = 32  # frames per group (4 x 32 = 1 x 128: PRN's minibatch)
     label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels
     network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
     labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")
@@ -133,10 +162,21 @@ def get_method(name: str) -> Method:
     return m[name]
 
 
-def scaled_schedule(iterations: int, **overrides):
-    """The paper's TrainConfig with the lr step compressed proportionally to ``iterations`` (70k = paper)."""
+def schedule(iterations: int, compress: bool = False, **overrides):
+    """The paper's :class:`~prn.train.TrainConfig` for ``iterations``: lr x0.8 every 5,000 iterations whatever the
+    count (the paper's schedule); ``compress`` scales that step by ``iterations / 70,000`` instead (a shorter run
+    that ends as far down the schedule as the paper's 70k do)."""
     from prn.train import TrainConfig
 
-    step = max(1, round(5000 * iterations / 70_000))
+    step = max(1, round(TrainConfig.lr_step * iterations / 70_000)) if compress else TrainConfig.lr_step
     return dataclasses.replace(TrainConfig(), iterations=iterations, lr_step=step,
                                checkpoint_every=max(100, iterations // 20), **overrides)
+
+
+def schedule_text(iterations: int, compress: bool) -> str:
+    """How a table states its learning-rate schedule."""
+    cfg = schedule(iterations, compress)
+    if compress:
+        return (f"lr x0.8 every {cfg.lr_step:,} iterations (the paper's 5,000 compressed to {iterations:,} of its "
+                "70,000)")
+    return "lr x0.8 every 5,000 iterations (the paper's)"

@@ -32,9 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_training_arguments, labels_dir, markdown_table, run_metadata, run_table, write_csv,
-                               write_json)
-from benchmarks.registry import QUICK_LABEL_PARAMS, RunContext, Split, methods
+from benchmarks.common import (add_training_arguments, choose_data, labels_dir, markdown_table, run_metadata,
+                               run_table, write_csv, write_json)
+from benchmarks.methods import C3DPO_INPUTS
+from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, RunContext, Split, methods, millimetres,
+                                 schedule_text)
 from nrsfm.datasets import h36m
 from nrsfm.errors import ValidationError
 from nrsfm.metrics import mpjpe_prn_per_frame
@@ -67,6 +69,14 @@ PAPER = {
     ("PRN-FCN-W", "sh"): (100.3, 88.8, 82.8, 105.2, 91.4, 96.7, 88.1, 102.1, 113.2, 87.4, 115.1, 96.5, 91.7, 87.6,
                           106.4, 95.9),
 }
+#: The protocol of each published number: C3DPO's rows are the C3DPO README's figures in its own evaluation (each
+#: Avg the unweighted mean of its 15 actions); the paper's own rows are in PRN's.
+PROTOCOLS = ("prn", "c3dpo")
+PAPER_PROTOCOL = {key: "c3dpo" if key[0] == "C3DPO" else "prn" for key in PAPER}
+PROTOCOL_TEXT = {
+    "prn": "PRN protocol (shapes centred on the joints' mean, z sign per frame, no Procrustes; frame-weighted means)",
+    "c3dpo": "C3DPO protocol (shapes centred on the hip, the better of the raw and the depth-flipped prediction per "
+             "frame, no Procrustes; the mean per action, Avg the unweighted mean of the actions)"}
 INPUTS = ("gt-ortho", "gt-persp", "sh")
 #: C3DPO's learning rate in this table: chosen on a held-out training subject (``--validate S8``), not on the test
 #: subjects; the authors' 1e-3 (``baselines.c3dpo.C3DPOConfig``) went with their own, undocumented data preparation.
@@ -95,6 +105,7 @@ def split_subjects(args: argparse.Namespace, train_s: list[str], test_s: list[st
 
 def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict[str, Split], dict]:
     """The train/test data of every input type, and a description for the metadata."""
+    data_notice(args)
     if args.data == "synthetic":
         from nrsfm.datasets.synthetic import SUBJECTS, human_sequences
 
@@ -171,14 +182,31 @@ def _drop_neck(seq):
 # --------------------------------------------------------------------------- evaluation
 def evaluate(preds: list[np.ndarray], truth: list) -> dict[str, tuple[float, int]]:
     """Per action (and "Avg") the frame-weighted MPJPE (mm) and the frame count."""
-    from prn.data import denormalize
-
     errs: dict[str, list[np.ndarray]] = defaultdict(list)
-    for p, seq in zip(preds, truth):
-        e = mpjpe_prn_per_frame(denormalize(p, seq.points_3d), seq.points_3d)
+    for p, seq in zip(millimetres(preds, truth), truth):
+        e = mpjpe_prn_per_frame(p, seq.points_3d)
         errs[seq.meta.get("action", "all")].append(e)
         errs["Avg"].append(e)
     return {a: (float(np.concatenate(v).mean()), int(sum(len(x) for x in v))) for a, v in errs.items()}
+
+
+def evaluate_c3dpo(preds: list[np.ndarray], truth: list) -> dict[str, tuple[float, int]]:
+    """C3DPO's protocol (its ``eval_h36m``): per action (and "Avg") the mean over its frames of the MPJPE (mm)
+    after centring on the hip, the better of the raw and the depth-flipped prediction per frame; "Avg" is the
+    unweighted mean of the actions' errors. Also "stress" (mm, the same averaging)."""
+    from benchmarks.methods import root_joint
+    from nrsfm.metrics import mpjpe_best_flip_per_frame, stress_per_frame
+
+    errs: dict[str, list[np.ndarray]] = defaultdict(list)
+    stresses: dict[str, list[np.ndarray]] = defaultdict(list)
+    for p, seq in zip(millimetres(preds, truth), truth):
+        action = seq.meta.get("action", "all")
+        errs[action].append(mpjpe_best_flip_per_frame(p, seq.points_3d, root=root_joint(seq)))
+        stresses[action].append(stress_per_frame(p, seq.points_3d))
+    out = {a: (float(np.concatenate(v).mean()), int(sum(len(x) for x in v))) for a, v in errs.items()}
+    out["Avg"] = (float(np.mean([v[0] for v in out.values()])), int(sum(v[1] for v in out.values())))
+    out["stress"] = (float(np.mean([np.concatenate(v).mean() for v in stresses.values()])), out["Avg"][1])
+    return out
 
 
 def _columns(data: str, results: dict) -> list[str]:
@@ -192,13 +220,12 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     """The command line of this table (also read by studies that evaluate its rows)."""
     p = argparse.ArgumentParser(prog=prog, description=description or __doc__.split("\n\n")[0])
     p.add_argument("--data", choices=["synthetic", "h36m"], default=None,
-                   help="default: h36m when --root is given, else synthetic")
-    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA); implies --data h36m")
+                   help="default: h36m when the data folder holds h36m/, else the embedded synthetic stand-in")
+    p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
     p.add_argument("--input", choices=list(INPUTS) + ["all"], default="gt-ortho")
     p.add_argument("--quick", action="store_true", help="a short schedule and small data: a smoke run")
     p.add_argument("--iterations", type=int, default=None,
-                   help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick); "
-                        "the lr schedule is compressed proportionally")
+                   help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick)")
     p.add_argument("--methods", default=None, help="comma-separated rows (default: all registered)")
     p.add_argument("--out", default=None, help="output folder (default: runs/table1-<data>)")
     p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps "
@@ -232,9 +259,11 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--c3dpo-compile", action="store_true",
                    help="compile C3DPO's forward and backward passes with torch.compile (fewer, fused kernels: "
                         "faster on a GPU once compiled; the compilation takes a minute or more)")
-    p.add_argument("--c3dpo-inputs", choices=["prn", "centred"], default="centred",
-                   help="C3DPO's inputs: the authors' (centred, one scale for every frame, so that a frame's size "
-                        "stays a cue; default) or PRN's (each frame divided by its own xy norm)")
+    p.add_argument("--c3dpo-inputs", choices=list(C3DPO_INPUTS), default="hip",
+                   help="C3DPO's inputs: hip (the authors', after Kudo et al.: each frame centred on the hip and "
+                        "divided by its mean hip-to-joint distance, the 3D and the error in millimetres through the "
+                        "same scale of the ground truth; default), centred (centred, every frame divided by one "
+                        "global scale) or prn (each frame divided by its own xy norm, as the other rows)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -245,11 +274,14 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
 
 
 def parse_args(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
-    """``argv`` read with ``p`` (:func:`parser`); ``--data`` is h36m when ``--root`` is given, else synthetic."""
-    args = p.parse_args(argv)
-    if args.data is None:
-        args.data = "h36m" if args.root else "synthetic"
-    return args
+    """``argv`` read with ``p`` (:func:`parser`); :func:`run_rows` settles ``--data`` (:func:`data_notice`)."""
+    return p.parse_args(argv)
+
+
+def data_notice(args: argparse.Namespace) -> str | None:
+    """Settle ``args.data``: h36m when ``--root`` or ``$NRSFM_DATA`` holds ``h36m/``, else the synthetic stand-in,
+    whose notice is returned (:func:`benchmarks.common.choose_data`)."""
+    return choose_data(args, [("h36m", ("h36m",))], "table1")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -269,12 +301,14 @@ class Rows:
     predictions: dict[tuple[str, str], list[np.ndarray]]
     results: dict[tuple[str, str], dict[str, tuple[float, int]]]
     not_run: dict[tuple[str, str], str]
+    results_c3dpo: dict[tuple[str, str], dict[str, tuple[float, int]]] = None
 
 
 def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
     """Train (or read back from the cache) and evaluate the rows of ``args`` on its inputs; the test predictions
     are kept in :attr:`Rows.predictions` only with ``keep_predictions``."""
     inputs = INPUTS if args.input == "all" else (args.input,)
+    data_notice(args)
     if args.iterations is not None and args.iterations < 1:
         raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
     iterations = args.iterations or (300 if args.quick else 70_000 if args.data == "h36m" else 4000)
@@ -302,11 +336,12 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor, c3dpo_lr=args.c3dpo_lr,
                      c3dpo_precision=args.c3dpo_precision, c3dpo_cuda_graph=not args.c3dpo_eager,
                      c3dpo_compile=args.c3dpo_compile, c3dpo_repeat=args.c3dpo_repeat,
+                     compress_schedule=args.compress_schedule,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
-    rows = Rows(splits, desc, ctx, names, {}, {}, {})
+    rows = Rows(splits, desc, ctx, names, {}, {}, {}, {})
     for inp, split in splits.items():
         for name in names:
             m = registry[name]
@@ -314,8 +349,13 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                 rows.not_run[(name, inp)] = f"{name} does not take {inp} input"
                 continue
             log.info("training/evaluating %s on %s ...", name, inp)
-            preds = m.run(split, ctx)
+            try:
+                preds = m.run(split, ctx)
+            except NotRun as why:
+                rows.not_run[(name, inp)] = str(why)
+                continue
             rows.results[(name, inp)] = evaluate(preds, split.test_truth)
+            rows.results_c3dpo[(name, inp)] = evaluate_c3dpo(preds, split.test_truth)
             if keep_predictions:
                 rows.predictions[(name, inp)] = preds
     return rows
@@ -323,48 +363,29 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
 
 def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
+    notice = data_notice(args)
+    if notice:
+        print(notice, flush=True)
     rows_run = run_rows(args, keep_predictions=args.plots)
     splits, desc, ctx, names = rows_run.splits, rows_run.desc, rows_run.ctx, rows_run.names
     inputs = tuple(splits)
     results, predictions, not_run = rows_run.results, rows_run.predictions, rows_run.not_run
     out, iterations, registry = ctx.out_dir, ctx.iterations, methods()
     cols = _columns(args.data, {k: v for k, v in results.items()})
+    by_protocol = {"prn": results, "c3dpo": rows_run.results_c3dpo}
     rows_csv, md = [], []
     header = ["Method"] + cols + ["Avg", "paper Avg"]
     for inp in inputs:
         evaluated = (f"test {'+'.join(desc['test_subjects'])}" if args.validate is None else
                      f"validation {args.validate} (a training subject held out of training; no test subject used)")
-        md.append(f"\n### Table 1 ({inp}): MPJPE (mm), {desc['data']}, {evaluated}, "
-                  "PRN protocol (mean-centred, z sign per frame, no Procrustes)\n")
-        rows = []
-        for name in names:
-            paper = PAPER.get((name, inp)) if args.validate is None else None  # the paper's are test numbers
-            paper_avg = paper[-1] if paper else None
-            if (name, inp) in results:
-                r = results[(name, inp)]
-                rows.append([f"{name} (ours)"] + [r.get(c, (None, 0))[0] for c in cols] + [r["Avg"][0], paper_avg])
-                for c in cols + ["Avg"]:
-                    if c in r:
-                        rows_csv.append({"input": inp, "method": name, "action": c, "mpjpe_mm": r[c][0],
-                                         "frames": r[c][1], "paper_mpjpe_mm": _paper_cell(paper, c)})
-            else:
-                rows.append([f"{name} (ours)"] + ["not run"] * len(cols) + [f"not run: {not_run.get((name, inp))}",
-                                                                             paper_avg])
-            if paper and args.data == "h36m":
-                rows.append([f"{name} (paper)"] + [_paper_cell(paper, c) for c in cols] + [paper[-1], paper[-1]])
-        for (pname, pinp), paper in PAPER.items():
-            if pinp == inp and pname not in names and args.validate is None:
-                why = "not selected with --methods" if pname in registry else "not implemented here yet"
-                rows.append([f"{pname} (paper; {why})"]
-                            + ([_paper_cell(paper, c) for c in cols] if args.data == "h36m" else [None] * len(cols))
-                            + [None, paper[-1]])
-        md.append(markdown_table(header, rows))
-    own = [(k, v["own_protocol"]) for k, v in ctx.timings.items() if "own_protocol" in v]
-    if own:
-        md.append("\nC3DPO's own protocol (root-centred MPJPE, the better of raw and depth-flipped per frame; stress), "
-                  "beside its published numbers (C3DPO README: MPJPE 95.6 GT 2D, 145.0 hourglass):\n")
-        md.append(markdown_table(["row", "MPJPE best-of-flip (mm)", "stress (mm)"],
-                                 [[k, v["mpjpe_best_flip_mm"], v["stress_mm"]] for k, v in own]))
+        for protocol in PROTOCOLS:
+            md.append(f"\n### Table 1 ({inp}): MPJPE (mm), {desc['data']}, {evaluated}, {PROTOCOL_TEXT[protocol]}\n")
+            md.append(markdown_table(header, _protocol_rows(protocol, inp, names, by_protocol[protocol], not_run, cols,
+                                                            args, registry, rows_csv)))
+    md.insert(0, f"Training: {iterations:,} iterations, {schedule_text(iterations, ctx.compress_schedule)}. "
+                 "Each row is scaled back to millimetres by its own per-frame statistic of the ground truth (PRN's "
+                 "rows: the xy norm; C3DPO on the authors' inputs: the mean hip distance), then scored in both "
+                 "protocols; a paper number sits only in the protocol it was measured in.")
     labels = [(k, v["labels"]) for k, v in ctx.timings.items() if "labels" in v]
     if labels:
         md.append("\nPseudo-labels (training frames; MPJPE against the ground truth, PRN protocol):\n")
@@ -373,12 +394,14 @@ def _run(args: argparse.Namespace) -> int:
                                  [[k, s["method"], ", ".join(f"{a}={b}" for a, b in s["params"].items()) or "defaults",
                                    s["cuts"], s["failed"], f"{s['labelled_frames']} of {s['frames']}",
                                    s["label_mpjpe"], s["seconds"]] for k, s in labels]))
-    if args.data == "synthetic":
-        md.append("\nSynthetic stand-in: the paper columns are Human3.6M numbers, shown for orientation only.")
+    if notice:
+        md.insert(0, notice + "; the paper columns are Human3.6M numbers, shown for orientation only.\n")
     text = "\n".join(md)
     print(text)
     total = time.perf_counter() - t_start
-    meta = run_metadata(table="PRN Table 1", metric="MPJPE (mm), PRN protocol", data=desc, inputs=list(inputs),
+    meta = run_metadata(table="PRN Table 1", metric="MPJPE (mm), PRN and C3DPO protocols", data=desc,
+                        inputs=list(inputs), protocols=PROTOCOL_TEXT,
+                        schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
                         label_params=ctx.label_params,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
@@ -390,8 +413,10 @@ def _run(args: argparse.Namespace) -> int:
                         timings=ctx.timings, total_seconds=total)
     write_csv(out / "table1.csv", rows_csv)
     write_json(out / "table1.json", {"meta": meta, "results": [
-        {"method": n, "input": i, "per_action": {a: {"mpjpe_mm": v[0], "frames": v[1]} for a, v in r.items()},
-         "paper_avg": PAPER.get((n, i), (None,))[-1]} for (n, i), r in results.items()],
+        {"method": n, "input": i, "protocol": protocol,
+         "per_action": {a: {"mpjpe_mm": v[0], "frames": v[1]} for a, v in r.items()},
+         "paper_avg": _paper_cell(_paper(n, i, protocol, args), "Avg")}
+        for protocol in PROTOCOLS for (n, i), r in by_protocol[protocol].items()],
         "not_run": [{"method": n, "input": i, "why": w} for (n, i), w in not_run.items()]})
     write_json(out / "meta.json", meta)
     (out / "table1.md").write_text(text + "\n")
@@ -430,6 +455,43 @@ def _figures(out: Path, splits, results, predictions, ctx, data: str, cols: list
         figures.training_curves(out / f"table1_{inp}_curves.png", caches, title=f"Table 1 ({inp}): training loss")
         written += [f"table1_{inp}_{k}.png" for k in ("actions", "qualitative", "curves")]
     return written
+
+
+def _paper(name: str, inp: str, protocol: str, args: argparse.Namespace):
+    """The paper's numbers of a row in ``protocol``, or None (none published in that protocol, or a validation
+    run, whose numbers are not the paper's test numbers)."""
+    if args.validate is not None or PAPER_PROTOCOL.get((name, inp)) != protocol:
+        return None
+    return PAPER[(name, inp)]
+
+
+def _protocol_rows(protocol: str, inp: str, names: list[str], results: dict, not_run: dict, cols: list[str],
+                   args: argparse.Namespace, registry: dict, rows_csv: list[dict]) -> list[list]:
+    """The Markdown rows of one input in one protocol (ours, then the paper's numbers measured in that protocol);
+    appends the CSV rows to ``rows_csv``."""
+    rows = []
+    for name in names:
+        paper = _paper(name, inp, protocol, args)
+        paper_avg = paper[-1] if paper else None
+        if (name, inp) in results:
+            r = results[(name, inp)]
+            rows.append([f"{name} (ours)"] + [r.get(c, (None, 0))[0] for c in cols] + [r["Avg"][0], paper_avg])
+            for c in cols + ["Avg"]:
+                if c in r:
+                    rows_csv.append({"input": inp, "protocol": protocol, "method": name, "action": c,
+                                     "mpjpe_mm": r[c][0], "frames": r[c][1], "paper_mpjpe_mm": _paper_cell(paper, c)})
+        else:
+            why = not_run.get((name, inp), "not run")
+            rows.append([f"{name} (ours)"] + ["not run"] * len(cols) + [f"not run: {why}", paper_avg])
+        if paper and args.data == "h36m":
+            rows.append([f"{name} (paper)"] + [_paper_cell(paper, c) for c in cols] + [paper[-1], paper[-1]])
+    for (pname, pinp), paper in PAPER.items():
+        if pinp == inp and pname not in names and _paper(pname, pinp, protocol, args):
+            why = "not selected with --methods" if pname in registry else "not implemented here yet"
+            rows.append([f"{pname} (paper; {why})"]
+                        + ([_paper_cell(paper, c) for c in cols] if args.data == "h36m" else [None] * len(cols))
+                        + [None, paper[-1]])
+    return rows
 
 
 def _paper_cell(paper, col):

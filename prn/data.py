@@ -3,7 +3,12 @@
 Normalisation (official code): per frame, subtract the mean over the
 (visible) points and divide by the Frobenius norm of the centred xy. The 3D
 targets of evaluation get the same treatment with the ground truth's own xy
-norm, and predictions are scaled back by it (:func:`denormalize`).
+norm, and predictions are scaled back by it (:func:`denormalize`). A frame
+with missing points is centred on its visible points and divided by their
+norm times ``sqrt(P / visible)``, so that its size does not depend on how
+many points are missing (with every point visible this is the paper's norm);
+its prediction is scaled back by the ground truth's same statistic over the
+same points (``denormalize(..., visibility)``).
 
 Group sampling (one PR-loss group = ``group_size`` frames):
 
@@ -29,7 +34,8 @@ SAMPLINGS = ("multiview", "random", "consecutive")
 
 
 def normalize_2d(points_2d: np.ndarray, visibility: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Centre each frame on its visible points and divide by the xy Frobenius norm.
+    """Centre each frame on its visible points and divide by their xy Frobenius norm times
+    ``sqrt(P / visible)`` (the norm itself when every point is visible).
 
     Args:
         points_2d: `(F, P, 2)`; visibility: `(F, P)` or None.
@@ -39,9 +45,9 @@ def normalize_2d(points_2d: np.ndarray, visibility: np.ndarray | None = None) ->
     """
     w = np.ones(points_2d.shape[:2]) if visibility is None else (visibility > 0).astype(np.float64)
     cnt = np.maximum(w.sum(axis=1, keepdims=True), 1.0)[..., None]  # (F, 1, 1)
-    centre = (points_2d * w[..., None]).sum(axis=1, keepdims=True) / cnt
-    c = (points_2d - centre) * w[..., None]
-    scale = np.linalg.norm(c.reshape(len(c), -1), axis=1)
+    centre = (np.nan_to_num(points_2d) * w[..., None]).sum(axis=1, keepdims=True) / cnt
+    c = np.nan_to_num(points_2d - centre) * w[..., None]
+    scale = np.linalg.norm(c.reshape(len(c), -1), axis=1) * np.sqrt(points_2d.shape[1] / cnt[:, 0, 0])
     scale = np.where(scale > 0, scale, 1.0)
     return c / scale[:, None, None], scale
 
@@ -54,9 +60,15 @@ def normalize_3d(points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c / scale[:, None, None], scale
 
 
-def denormalize(pred: np.ndarray, gt_3d: np.ndarray) -> np.ndarray:
-    """Scale normalised predictions `(F, P, 3)` back to the ground truth's units by its xy norm (PRN protocol)."""
-    _, scale = normalize_3d(gt_3d)
+def denormalize(pred: np.ndarray, gt_3d: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+    """Scale normalised predictions `(F, P, 3)` back to the ground truth's units by its xy norm (PRN protocol).
+
+    With ``visibility`` `(F, P)` (the points a test input was normalised on), by the ground truth's xy statistic
+    over those points, as :func:`normalize_2d` computes it."""
+    if visibility is None:
+        _, scale = normalize_3d(gt_3d)
+    else:
+        _, scale = normalize_2d(gt_3d[..., :2], visibility)
     return pred * scale[:, None, None]
 
 
@@ -140,7 +152,7 @@ def _take_key(seq: Sequence) -> tuple[str, int]:
 
 def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = None, *,
                        sampling: str = "multiview", drop_invisible_inputs: bool = True,
-                       images: list | None = None) -> TrainingSet:
+                       images: list | None = None, scores: bool = False) -> TrainingSet:
     """Stack sequences into a :class:`TrainingSet`.
 
     Args:
@@ -155,6 +167,8 @@ def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = 
             (Neck/Nose for Stacked Hourglass: 16 inputs, 17 outputs).
         images: for PRN-CNN, one image source per input sequence (`(F, H, W, 3)` uint8 arrays or lazy
             sources, :mod:`prn.images`), frame for frame.
+        scores: the data term weighs each target point by the input's visibility there, read as a detection
+            score in [0, 1] (PRN-FCN-W); points that are no input keep their target weight.
     """
     if sampling not in SAMPLINGS:
         raise ValidationError(f"sampling: expected one of {SAMPLINGS}, got {sampling!r}")
@@ -181,7 +195,7 @@ def build_training_set(inputs: list[Sequence], targets: list[Sequence] | None = 
         xs.append(x[:, keep])
         xw.append(si.weights[:, keep])
         ys.append(y)
-        yw.append(ti.weights)
+        yw.append(ti.weights * np.where(keep, si.weights, 1.0) if scores else ti.weights)
         offsets.append(start)
         start += si.n_frames
     streams: list[np.ndarray] = []

@@ -1,11 +1,13 @@
 """The PRN training recipe, with checkpoints, resume and progress.
 
 Defaults are the paper's (ECCV 2020, supplementary): Adam (0.9, 0.999), lr
-1e-4 multiplied by 0.8 every 5000 iterations, weight decay 1e-4 (in the
-official code, not the paper), lambda = 0.05, minibatch 128 = 4 groups x 32
-frames, 70k iterations with batch-norm statistics frozen for the last 30%.
-As in the official code the frozen-BN phase restarts the learning-rate
-schedule (50k + 20k for the default 70k).
+1e-4 multiplied by 0.8 every 5000 iterations, lambda = 0.05, minibatch 128 =
+4 groups x 32 frames, 70k iterations with batch-norm statistics frozen for
+the last 30%. Two choices come from the authors' released code, not the
+paper: weight decay 1e-4, and the learning-rate schedule restarting where the
+batch-norm statistics freeze (their code trains 50k iterations, then starts a
+new solver with frozen statistics whose counter and schedule begin again;
+50k + 20k for the default 70k).
 
 Checkpoints are written atomically every ``checkpoint_every`` iterations to
 ``<out>/checkpoint.pt``; :func:`train` continues from it when ``resume`` is
@@ -55,6 +57,11 @@ class TrainConfig:
     data term keeps every point's 2D, as the paper's Stacked Hourglass
     networks read detections and are trained against ground-truth 2D. Under
     another ``objective`` (a supervised 3D loss) they leave the input only.
+    ``missing_normalise="visible"`` normalises each such sample again on the
+    points it keeps (:func:`renormalise`: its input and its 2D targets, and a
+    supervised objective's 3D target), as a test frame whose points were never
+    observed must be; ``"all"`` keeps the normalisation of all its points, the
+    dropped ones included (their 2D enters through the centre and the scale).
 
     ``point_groups`` > 1 is the paper's recipe for dense shapes (SURREAL, 6,890
     points): every iteration the points are split at random into that many
@@ -83,6 +90,7 @@ class TrainConfig:
     device: str = "auto"
     missing_points: float = 0.0
     missing_in_loss: bool = True
+    missing_normalise: str = "all"
     point_groups: int = 1
     network: str = "fcn"
     pretrained: bool = True
@@ -97,6 +105,8 @@ class TrainConfig:
             raise ValidationError(f"point_groups: expected an integer >= 1, got {self.point_groups}")
         if not 0 <= self.missing_points < 1:
             raise ValidationError(f"missing_points: expected a fraction in [0, 1), got {self.missing_points}")
+        if self.missing_normalise not in ("all", "visible"):
+            raise ValidationError(f"missing_normalise: expected 'all' or 'visible', got {self.missing_normalise!r}")
         if self.network != "fcn" and self.network not in _backbones():
             raise ValidationError(f"network: expected 'fcn' or one of {_backbones()}, got {self.network!r}")
         if self.lam < 0 or self.lr <= 0:
@@ -159,14 +169,16 @@ class Objective(Protocol):
     """Another training objective for the same network and recipe (the supervised "+NN" baselines).
 
     ``to(device)`` returns the objective with its tensors on ``device``; ``sample(rng)`` the `(N,)` training frames
-    of one minibatch; ``loss(pred, idx)`` the scalar loss of the `(N, P, 3)` predictions for frames ``idx``.
+    of one minibatch; ``loss(pred, idx)`` the scalar loss of the `(N, P, 3)` predictions for frames ``idx``, and
+    ``loss(pred, idx, visible=w)`` the same for inputs normalised on the points of nonzero `(N, P)` weight ``w``
+    (``TrainConfig.missing_normalise``), whose targets must be normalised alike.
     """
 
     def to(self, device: torch.device) -> "Objective": ...
 
     def sample(self, rng: np.random.Generator) -> np.ndarray: ...
 
-    def loss(self, pred: torch.Tensor, idx: torch.Tensor) -> torch.Tensor: ...
+    def loss(self, pred: torch.Tensor, idx: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor: ...
 
 
 def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str | os.PathLike | None = None, *,
@@ -206,6 +218,17 @@ def _point_groups(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, k: int):
         return t[:, perm].transpose(0, 1).reshape(k * n, m, *t.shape[2:])
 
     return split(pred), split(y), split(w)
+
+
+def renormalise(points: torch.Tensor, weights: torch.Tensor, zero_missing: bool = True) -> torch.Tensor:
+    """`(N, P, D)` points centred on the points of nonzero `(N, P)` weight and divided by their xy Frobenius norm
+    times ``sqrt(P / kept)``: :func:`prn.data.normalize_2d` of the kept points, the others set to 0 (or, without
+    ``zero_missing``, moved and scaled with the rest: a 3D target shape)."""
+    w = (weights > 0).to(points.dtype).unsqueeze(-1)  # (N, P, 1)
+    count = w.sum(dim=1, keepdim=True).clamp_min(1.0)  # (N, 1, 1)
+    c = points - (points * w).sum(dim=1, keepdim=True) / count
+    scale = (c[..., :2] * w).flatten(1).norm(dim=1) * torch.sqrt(points.shape[1] / count[:, 0, 0])
+    return (c * w if zero_missing else c) / scale.clamp_min(1e-12)[:, None, None]
 
 
 @contextlib.contextmanager
@@ -255,12 +278,15 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
 
     if objective is not None:
         objective = objective.to(device)
+        if config.missing_points > 0 and config.missing_normalise == "visible" and data.n_inputs != data.n_points:
+            raise ValidationError(f"missing_normalise='visible' with a supervised objective: expected the inputs to "
+                                  f"be the output points, got {data.n_inputs} inputs for {data.n_points} outputs")
     x_all = torch.as_tensor(data.inputs, dtype=torch.float32, device=device)
     xw_all = torch.as_tensor(data.input_weights, dtype=torch.float32, device=device)
 
-    def forward(idx: torch.Tensor, xw: torch.Tensor) -> torch.Tensor:
+    def forward(idx: torch.Tensor, xw: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
         if config.network == "fcn":
-            return model(x_all[idx], xw)
+            return model(x_all[idx] if x is None else x, xw)
         from prn.images import to_tensor
 
         return model(to_tensor(data.images[idx.cpu().numpy()], device))
@@ -282,22 +308,29 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             g["lr"] = config.lr_at(it)
         logged = (it + 1) % log_every == 0 or it == start
         at_checkpoint = (it + 1) % config.checkpoint_every == 0 or it + 1 == end
+        visible = config.missing_points > 0 and config.missing_normalise == "visible"
         if objective is not None:
             idx = indices_to(objective.sample(rng), device)
-            xw = xw_all[idx]
+            xw, x = xw_all[idx], None
             if config.missing_points > 0 and config.network == "fcn":  # the objective keeps every point's target
                 xw = xw * (torch.rand(xw.shape, device=device) >= config.missing_points).to(xw.dtype)
-            loss = objective.loss(forward(idx, xw), idx)
+                if visible:
+                    x = renormalise(x_all[idx], xw)
+            pred = forward(idx, xw, x)
+            loss = objective.loss(pred, idx) if x is None else objective.loss(pred, idx, visible=xw)
         else:
             idx = indices_to(data.sample_groups(rng, config.groups, config.group_size, config.frame_gap), device)
             xw, yw = xw_all[idx], yw_all[idx]
+            x, y = None, y_all[idx]
             if config.missing_points > 0:
                 keep = (torch.rand(len(idx), yw.shape[1], device=device) >= config.missing_points).to(yw.dtype)
                 if config.missing_in_loss:
                     yw = yw * keep
                 if data.input_points is not None and len(data.input_points) == yw.shape[1]:
                     xw = xw * keep
-            pred, y = forward(idx, xw), y_all[idx]
+                if visible:
+                    x, y = renormalise(x_all[idx], xw), renormalise(y, yw)
+            pred = forward(idx, xw, x)
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
             loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size,

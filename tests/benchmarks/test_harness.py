@@ -87,8 +87,16 @@ def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, mo
     avg = {(r["method"], r["input"]): r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"]}
     for name in rows.split(","):
         assert np.isfinite(avg[(name, "gt-ortho")]), name
-    assert "not implemented" not in text and "Pseudo-labels" in text and "C3DPO's own protocol" in text
+    assert "not implemented" not in text and "Pseudo-labels" in text and "C3DPO protocol" in text
     assert "PRN-FCN (paper; not selected with --methods)" in text
+    rows_csv = (out / "table1.csv").read_text().splitlines()
+    assert rows_csv[0].startswith("input,protocol,method,action,mpjpe_mm,frames,paper_mpjpe_mm")
+    protocols = {r["protocol"] for r in data["results"]}
+    assert protocols == {"prn", "c3dpo"} and all(",prn," in r or ",c3dpo," in r for r in rows_csv[1:])
+    # the paper's C3DPO number (C3DPO's own protocol) never sits in PRN's column, nor PRN's in C3DPO's
+    paper = {(r["method"], r["protocol"]): r["paper_avg"] for r in data["results"]}
+    assert paper[("C3DPO", "prn")] is None and paper[("C3DPO", "c3dpo")] == 67.8
+    assert paper[("GT 3D", "c3dpo")] is None
     labels = data["meta"]["timings"]["CSF2 + NN (gt-ortho)"]["labels"]
     assert labels["cuts"] == 2 * 20 and labels["labelled_frames"] + 4 * labels["failed"] >= labels["frames"]
 
@@ -96,9 +104,9 @@ def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, mo
 def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
     assert table1.main(["--data", "h36m", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "h36m: expected a dataset folder" in capsys.readouterr().err
-    # --root alone means Human3.6M (it was ignored, and the synthetic stand-in trained instead)
+    # --root alone means Human3.6M: a folder without it is an error, not a silent stand-in
     assert table1.main(["--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
-    assert "h36m: expected a dataset folder" in capsys.readouterr().err
+    assert "--root: expected h36m under" in capsys.readouterr().err
     assert table1.main(["--iterations", "0", "--out", str(tmp_path / "o")]) == 2
     assert "--iterations: expected a number of training iterations >= 1, got 0" in capsys.readouterr().err
 

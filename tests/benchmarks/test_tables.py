@@ -13,36 +13,43 @@ from benchmarks.registry import Split
 from nrsfm.datasets.synthetic import face_sequences, surface_sequence
 
 
-def test_table_s1_trains_one_model_per_ratio_and_drops_test_points(tmp_path, capsys, monkeypatch):
+def test_table_s1_trains_one_model_per_ratio_and_variant_and_drops_test_points(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
     monkeypatch.setattr(table1, "SYNTHETIC_MOTIONS", ("walking", "waving", "bending", "turning"))  # 160 frames
     out = tmp_path / "s1"
     assert table_s1.main(["--iterations", "12", "--ratios", "0,0.2", "--out", str(out), "--no-progress"]) == 0
     text = capsys.readouterr().out
+    assert text.startswith("table_s1: the embedded synthetic stand-in")
     assert "| PRN-FCN (ours) |" in text and "| 0% | 20% |" in text and "(paper)" not in text  # synthetic: no paper
+    assert "| PRN-FCN (ours; normalised with the hidden points, as a preprocessed dataset would be) |" in text
+    assert "lr x0.8 every 5,000 iterations (the paper's)" in text
     data = json.loads((out / "table_s1.json").read_text())
-    avg = {r["missing_ratio"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"]}
-    assert set(avg) == {0.0, 0.2} and all(np.isfinite(v) for v in avg.values())
-    parts = {r["missing_ratio"]: r["mpjpe_by_visibility_mm"] for r in data["results"]}
-    assert parts[0.0]["missing"] is None and parts[0.0]["visible"] == pytest.approx(avg[0.0])
-    # about a fifth of the joints are missing: the average lies between the two parts, near 4:1
-    lo, hi = sorted((parts[0.2]["visible"], parts[0.2]["missing"]))
-    assert lo < avg[0.2] < hi and avg[0.2] == pytest.approx(0.8 * parts[0.2]["visible"] + 0.2 * parts[0.2]["missing"],
-                                                             rel=0.05)
-    assert "| PRN-FCN, missing joints | – |" in text
-    assert parts[0.0]["visible_alone"] == pytest.approx(avg[0.0])  # nothing missing: the same frame as the MPJPE
-    assert parts[0.0]["test_complete"] == pytest.approx(avg[0.0])
-    # test inputs normalised on their visible points: another input than training's, another error
-    assert parts[0.0]["normalised_on_visible"] == pytest.approx(avg[0.0])
-    assert np.isfinite(parts[0.2]["normalised_on_visible"]) and parts[0.2]["normalised_on_visible"] != avg[0.2]
-    assert "| PRN-FCN, all joints, each test input centred and scaled on its visible points |" in text
-    assert np.isfinite(parts[0.2]["test_complete"]) and parts[0.2]["test_complete"] != pytest.approx(avg[0.2])
-    assert "| PRN-FCN, all joints, the test inputs complete (points missing in training only) |" in text
-    caches = [t["cache"] for per in data["meta"]["timings"].values() for t in per.values()]
-    assert len(set(caches)) == 2 and len(list((out / "cache").iterdir())) == 2  # a model per ratio, reused
+    avg = {(r["variant"], r["missing_ratio"]): r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"]}
+    assert set(avg) == {(v, r) for v in ("visible", "hidden") for r in (0.0, 0.2)}
+    assert all(np.isfinite(v) for v in avg.values())
+    assert avg[("visible", 0.0)] == avg[("hidden", 0.0)]  # nothing missing: one model
+    assert avg[("visible", 0.2)] != avg[("hidden", 0.2)]
+    parts = {(r["variant"], r["missing_ratio"]): r["mpjpe_by_visibility_mm"] for r in data["results"]}
+    assert parts[("visible", 0.0)]["missing"] is None
+    assert parts[("visible", 0.0)]["visible"] == pytest.approx(avg[("visible", 0.0)])
+    for v in ("visible", "hidden"):
+        # about a fifth of the joints are missing: the average lies between the two parts, near 4:1
+        p = parts[(v, 0.2)]
+        lo, hi = sorted((p["visible"], p["missing"]))
+        assert lo < avg[(v, 0.2)] < hi
+        assert avg[(v, 0.2)] == pytest.approx(0.8 * p["visible"] + 0.2 * p["missing"], rel=0.05)
+        assert np.isfinite(p["test_complete"]) and p["test_complete"] != pytest.approx(avg[(v, 0.2)])
+    assert "| PRN-FCN, visible: missing joints | – |" in text
+    assert parts[("visible", 0.0)]["visible_alone"] == pytest.approx(avg[("visible", 0.0)])
+    assert parts[("visible", 0.0)]["test_complete"] == pytest.approx(avg[("visible", 0.0)])
+    assert "| PRN-FCN, hidden: all joints, the test inputs complete (points missing in training only) |" in text
+    caches = {t["cache"] for per in data["meta"]["timings"].values() for t in per.values()}
+    assert len(caches) == 3 and len(list((out / "cache").iterdir())) == 3  # 0%, and 20% per variant
     assert (out / "table_s1.png").exists() and (out / "table_s1.csv").exists()
     assert table_s1.main(["--ratios", "0,1.5", "--out", str(out)]) == 2
     assert "--ratios: expected comma-separated fractions in [0, 1)" in capsys.readouterr().err
+    assert table_s1.main(["--variants", "both", "--out", str(out)]) == 2
+    assert "--variants: expected names among" in capsys.readouterr().err
 
 
 def test_visible_alone_ignores_the_missing_joints():

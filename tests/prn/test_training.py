@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -36,9 +38,9 @@ def test_test_inputs_normalised_on_visible_points_or_on_all_as_a_training_sample
     np.testing.assert_array_equal(w, w_all)
     # "all": the complete frame's normalisation with the missing points zeroed, as train() drops points
     np.testing.assert_allclose(x_all, normalize_2d(seq.points_2d)[0] * seen[..., None])
-    # "visible": centred and of unit norm on the visible points alone
+    # "visible": centred on the visible points alone, their norm that of as many of P points at unit norm
     np.testing.assert_allclose((x_vis * seen[..., None]).sum(1), 0.0, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(x_vis.reshape(10, -1), axis=1), 1.0)
+    np.testing.assert_allclose(np.linalg.norm(x_vis.reshape(10, -1), axis=1), np.sqrt(seen.mean(axis=1)))
     assert not np.allclose(x_vis, x_all)
     np.testing.assert_allclose(small_set.prepare_inputs(seq, "all")[0], small_set.prepare_inputs(seq)[0])
     with pytest.raises(ValidationError, match="normalise_on: expected 'visible' or 'all'"):
@@ -158,6 +160,67 @@ def test_nan_loss_stops_with_a_clear_error(small_set, tmp_path):
     bad.targets[:] = np.nan
     with pytest.raises(TrainingError, match="the loss became nan at iteration 0"):
         train(bad, TrainConfig(iterations=5, width=16, group_size=8, groups=1), tmp_path, progress=False)
+
+
+def test_renormalise_is_normalize_2d_of_the_kept_points_and_scales_a_3d_target_alike():
+    from prn.train import renormalise
+
+    seq = human_sequences(("S9",), ("walking",), (1,), n_frames=6)[0]
+    keep = np.random.default_rng(0).random((6, 17)) > 0.3
+    x = torch.as_tensor(normalize_2d(seq.points_2d)[0])
+    np.testing.assert_allclose(renormalise(x, torch.as_tensor(keep)).numpy(),
+                               normalize_2d(seq.points_2d, keep)[0], atol=1e-12)
+    # a frame's size does not depend on how many points it keeps: as many points at unit norm as it has
+    assert np.isclose(np.linalg.norm(normalize_2d(seq.points_2d, keep)[0][0]), np.sqrt(keep[0].mean()))
+    # a 3D target keeps every point, moved and scaled as its 2D; denormalize with the same points undoes it
+    y3 = renormalise(torch.tensor(seq.points_3d), torch.as_tensor(keep), zero_missing=False).numpy()
+    np.testing.assert_allclose(y3[..., :2][keep], normalize_2d(seq.points_2d, keep)[0][keep], atol=1e-12)
+    back = denormalize(y3, seq.points_3d, keep)
+    np.testing.assert_allclose(back - back.mean(1, keepdims=True),
+                               seq.points_3d - seq.points_3d.mean(1, keepdims=True), atol=1e-9)
+
+
+def test_missing_points_normalised_on_the_visible_ones_in_training(small_set, monkeypatch):
+    """``missing_normalise="visible"``: each training sample's input and 2D targets are normalised on the points
+    it keeps (no hidden point's 2D enters), and a supervised 3D target alike."""
+    seen = []
+    forward = PRNFCN.forward
+
+    def spy_forward(self, x, w=None):
+        seen.append((x.detach().clone(), w.detach().clone()))
+        return forward(self, x, w)
+
+    monkeypatch.setattr(PRNFCN, "forward", spy_forward)
+    cfg = TrainConfig(iterations=3, width=32, group_size=8, groups=2, missing_points=0.3, missing_normalise="visible")
+    assert np.isfinite(train(small_set, cfg, progress=False).history[-1]["loss"])
+    x, w = seen[0]
+    kept = (w > 0).unsqueeze(-1)
+    torch.testing.assert_close((x * kept).sum(1), torch.zeros(len(x), 2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(x.flatten(1).norm(dim=1), kept[..., 0].float().mean(1).sqrt(), atol=1e-5, rtol=0)
+    assert (x[~kept[..., 0]] == 0).all()
+    # the same run with "all" feeds inputs normalised with the hidden points (not centred on the kept ones)
+    seen.clear()
+    train(small_set, dataclasses.replace(cfg, missing_normalise="all"), progress=False)
+    x, w = seen[0]
+    assert (x * (w > 0).unsqueeze(-1)).sum(1).abs().max() > 1e-2
+    from baselines.supervised import train_supervised
+
+    seqs = human_sequences(("S1",), ("walking",), n_frames=40, takes=1)
+    res, _ = train_supervised(seqs, [s.points_3d for s in seqs], dataclasses.replace(cfg, width=16), None,
+                              progress=False)
+    assert np.isfinite(res.history[-1]["loss"])
+    with pytest.raises(ValidationError, match="missing_normalise: expected 'all' or 'visible'"):
+        TrainConfig(missing_normalise="some")
+
+
+def test_scores_weigh_the_data_term():
+    """PRN-FCN-W: the data term weighs each target point by the input's detection score (its visibility)."""
+    seqs = human_sequences(("S1",), ("walking",), (1,), n_frames=12)
+    rng = np.random.default_rng(0)
+    scored = [s.replace(visibility=rng.uniform(0.2, 1.0, s.points_2d.shape[:2])) for s in seqs]
+    data = build_training_set(scored, seqs, sampling="random", scores=True)
+    np.testing.assert_allclose(data.target_weights, np.concatenate([s.visibility for s in scored]))
+    np.testing.assert_allclose(build_training_set(scored, seqs, sampling="random").target_weights, 1.0)
 
 
 def test_schedule():
