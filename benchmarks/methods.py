@@ -185,6 +185,11 @@ def pr_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _plus_nn(split, ctx, "PR + NN", "pr")
 
 
+@register_method("EM-PND + NN", ("gt-ortho",), "PRN-FCN's network on EM-PND's pseudo-3D labels (supervised)")
+def empnd_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    return _plus_nn(split, ctx, "EM-PND + NN", "empnd")
+
+
 @register_method("CSF2 + CNN", ("rgb",), "PRN-CNN's network on CSF2's pseudo-3D labels (supervised)")
 def csf2_cnn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _plus_nn(split, ctx, "CSF2 + CNN", "csf2")

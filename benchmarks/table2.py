@@ -115,6 +115,7 @@ def _mpjpe(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 SPEC = TableSpec(name="table2", title="Table 2 (Human3.6M, RGB images)", rows=tuple(PAPER), paper=PAPER, load=load,
                  iterations=(120_000, 3000, 400), metric="MPJPE (mm)", error=_mpjpe, real_name="h36m",
+                 real_data=(("h36m", ("h36m", "h36m/images")),),
                  frame="mean-centred, z sign per frame, no Procrustes (PRN protocol); test S9",
                  context={"network": "resnet50"}, synthetic_context={"network": "small"}, images=True)
 

@@ -47,6 +47,7 @@ def load(args: argparse.Namespace) -> tuple[Split, dict]:
 
 SPEC = TableSpec(name="table4", title="Table 4 (SURREAL dense bodies)", rows=tuple(PAPER), paper=PAPER, load=load,
                  iterations=(70_000, 3000, 300), metric="NE", error=normalized_error, real_name="surreal",
+                 real_data=(("surreal", ("surreal/train", "surreal/test")),),
                  context={"width": 4096, "point_groups": 8}, synthetic_context={"width": 1024, "point_groups": 4},
                  frame="centred per frame, z sign per frame, scaled back by the ground truth's xy norm")
 
