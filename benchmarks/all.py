@@ -46,8 +46,8 @@ def _rows(name: str, folder: Path) -> list[tuple[str, float | None, float | None
         return [(f"{r['method']} ({100 * r['missing_ratio']:g}% missing, normalised on {r['variant']} points)",
                  r["per_action"]["Avg"]["mpjpe_mm"],
                  r["paper_avg"] if data["meta"]["data"]["data"] == "h36m" else None) for r in data["results"]]
-    real = not data["meta"]["data"]["data"].startswith("synthetic")
-    return [(n, r["error"], data["paper"].get(n) if real else None) for n, r in data["results"].items()]
+    return [(f"{r['method']} ({r['section']})" if r["section"] else r["method"], r["error"], r["paper"])
+            for r in data["results"]]
 
 
 def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[str]:

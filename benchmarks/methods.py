@@ -25,14 +25,14 @@ def _network(split: Split, ctx: RunContext) -> str:
 
 
 def cache_config(config) -> dict:
-    """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but ``missing_in_loss`` and
-    ``missing_normalise`` only where they are not the default (so that models cached before the options existed
-    stay valid)."""
+    """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but the later ones (missing points' data term
+    and normalisation, pseudo-labels) only where they are not the default (so that models cached before the
+    options existed stay valid)."""
     out = dataclasses.asdict(config)
-    if config.missing_in_loss:
-        del out["missing_in_loss"]
-    if config.missing_normalise == "all":
-        del out["missing_normalise"]
+    for name, default in (("missing_in_loss", True), ("missing_normalise", "all"), ("label_weight", 0.0),
+                          ("label_decay", "none")):
+        if out[name] == default:
+            del out[name]
     return out
 
 
@@ -61,17 +61,23 @@ def _predict(model, data, split: Split, ctx: RunContext) -> Predictions:
     return out
 
 
-def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: bool = False) -> list[np.ndarray]:
+def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: bool = False,
+               labels: tuple[np.ndarray, dict] | None = None) -> list[np.ndarray]:
+    """PRN (``lam`` > 0) or PRN w/o reg; ``scores``: detection scores weigh the data term; ``labels``: normalised
+    pseudo-labels (one per training frame) and their cache key, pulled towards with ``ctx.label_weight``."""
     from prn.data import build_training_set
     from prn.train import load_model, train
 
     network = _network(split, ctx)
     data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling,
                               images=split.train_images if network != "fcn" else None, scores=scores)
-    config = _config(ctx, network, lam, missing_in_loss=ctx.missing_in_loss, point_groups=ctx.point_groups)
+    extra = {} if labels is None else {"label_weight": ctx.label_weight, "label_decay": ctx.label_decay}
+    config = _config(ctx, network, lam, missing_in_loss=ctx.missing_in_loss, point_groups=ctx.point_groups, **extra)
     key = {"config": cache_config(config), "data": split.tag, "input": split.input_type, "frames": data.description}
     if scores:
         key["scores"] = True
+    if labels is not None:
+        key["labels"] = labels[1]
     cache = ctx.cache_dir(name, key)
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:
@@ -81,7 +87,8 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
         ctx.timings[f"{name} ({split.input_type})"] = {"cached": True, "train_seconds": info["seconds"],
                                                        "iterations": info["iterations_run"], "cache": str(cache)}
     else:
-        res = train(data, config, cache, resume=not ctx.retrain, progress=ctx.progress)
+        res = train(data, config, cache, resume=not ctx.retrain, progress=ctx.progress,
+                    labels=None if labels is None else labels[0])
         model = res.model
         ctx.timings[f"{name} ({split.input_type})"] = {
             "cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
@@ -153,21 +160,38 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     return _predict(model, data, split, ctx)
 
 
-def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:
-    """A "+NN" row: pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`), then the
-    supervised network."""
+def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tuple[list[np.ndarray], dict]:
+    """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
+    weak-perspective ones), one `(F, P, 3)` array per training sequence, and their cache key; the label summary
+    goes to ``ctx.timings``."""
     from baselines.labels import code_version, make_labels
 
-    labels = make_labels(split.train_inputs, solver, ctx.label_params.get(solver),
+    tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in split.train_inputs]
+    labels = make_labels(tracks, solver, ctx.label_params.get(solver),
                          out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=split.labels_tag or split.tag,
                          jobs=ctx.jobs, progress=ctx.progress)
     s = labels.summary
-    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
+    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s, %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
-             f"{s['label_mpjpe']:.1f}" if s["label_mpjpe"] is not None else "-", s["seconds"])
+             f"{s['label_mpjpe']:.4g}" if s["label_mpjpe"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
-    return _cached_supervised(split, ctx, name, labels.labels,
-                              {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]})
+    return labels.labels, {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
+
+
+def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:
+    """A "+NN" row: pseudo-labels of ``solver`` on the training inputs, then the supervised network."""
+    labels, key = pseudo_labels(split, ctx, name, solver)
+    return _cached_supervised(split, ctx, name, labels, key)
+
+
+@register_method("PRN-L", ("gt-ortho", "gt-persp", "sh"),
+                 "PRN-FCN trained with the PR loss and a pull towards per-sequence NRSfM pseudo-labels (PR's by "
+                 "default): no 3D ground truth")
+def prn_l(split: Split, ctx: RunContext) -> list[np.ndarray]:
+    from baselines.supervised import normalised_targets
+
+    labels, key = pseudo_labels(split, ctx, "PRN-L", ctx.label_solver)
+    return _train_prn(split, ctx, "PRN-L", 0.05, labels=(normalised_targets(labels), key))
 
 
 @register_method("CSF2 + NN", ("gt-ortho",), "PRN-FCN's network on CSF2's pseudo-3D labels (supervised)")

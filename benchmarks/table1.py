@@ -159,6 +159,9 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
     splits = {}
     for inp in inputs:
         tag = f"h36m-{','.join(train_s)}-{stride}-{inp}"
+        # pseudo-labels are cached per cut (its recording, offset and 2D): every choice of training subjects
+        # shares them
+        labels_tag = f"h36m-{stride}-{inp}"
         if inp == "sh":
             te_in = load(test_s, "sh")
             names = {s.name for s in te_in}
@@ -166,10 +169,10 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
             tr_in = load(train_s, "sh")
             tr_names = {s.name for s in tr_in}
             tr_gt = [s for s in load(train_s, "gt-persp") if s.name in tr_names]
-            splits[inp] = Split(tr_in, tr_gt, te_in, te_gt, inp, tag=tag)
+            splits[inp] = Split(tr_in, tr_gt, te_in, te_gt, inp, tag=tag, labels_tag=labels_tag)
         else:
             tr, te = load(train_s, inp), load(test_s, inp)
-            splits[inp] = Split(tr, tr, te, te, inp, tag=tag)
+            splits[inp] = Split(tr, tr, te, te, inp, tag=tag, labels_tag=labels_tag)
     return splits, desc
 
 
@@ -264,6 +267,14 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                         "divided by its mean hip-to-joint distance, the 3D and the error in millimetres through the "
                         "same scale of the ground truth; default), centred (centred, every frame divided by one "
                         "global scale) or prn (each frame divided by its own xy norm, as the other rows)")
+    p.add_argument("--label-solver", default=RunContext.label_solver,
+                   help=f"PRN-L: the per-sequence solver of its pseudo-labels (default {RunContext.label_solver})")
+    p.add_argument("--label-weight", type=float, default=RunContext.label_weight,
+                   help=f"PRN-L: the pseudo-labels' weight beside the PR loss (default {RunContext.label_weight:g}, "
+                        "chosen on S8 held out; benchmarks/RESULTS.md)")
+    p.add_argument("--label-decay", choices=["linear", "none"], default=RunContext.label_decay,
+                   help=f"PRN-L: the weight falls linearly to 0 by the last iteration, or stays (default "
+                        f"{RunContext.label_decay})")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -327,6 +338,12 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
         raise ValidationError(f"--c3dpo-lr: expected a learning rate > 0, got {args.c3dpo_lr}")
     if args.c3dpo_repeat < 1:
         raise ValidationError(f"--c3dpo-repeat: expected >= 1, got {args.c3dpo_repeat}")
+    if not args.label_weight >= 0:
+        raise ValidationError(f"--label-weight: expected a weight >= 0, got {args.label_weight}")
+    from nrsfm.solvers.registry import available_solvers
+
+    if args.label_solver not in available_solvers():
+        raise ValidationError(f"--label-solver: expected one of {available_solvers()}, got {args.label_solver!r}")
     if args.jobs < 1 or args.c3dpo_batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {args.c3dpo_batch}")
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
@@ -336,7 +353,8 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      c3dpo_optimizer=args.c3dpo_optimizer, c3dpo_monitor=args.c3dpo_monitor, c3dpo_lr=args.c3dpo_lr,
                      c3dpo_precision=args.c3dpo_precision, c3dpo_cuda_graph=not args.c3dpo_eager,
                      c3dpo_compile=args.c3dpo_compile, c3dpo_repeat=args.c3dpo_repeat,
-                     compress_schedule=args.compress_schedule,
+                     compress_schedule=args.compress_schedule, label_solver=args.label_solver,
+                     label_weight=args.label_weight, label_decay=args.label_decay,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],

@@ -68,6 +68,14 @@ class TrainConfig:
     groups of equal size (the remainder sits the iteration out) and the PR
     loss is summed over them, each group aligned on its own points.
 
+    ``label_weight`` > 0 adds pseudo-labels to the PR loss (``train(...,
+    labels=...)``: one 3D shape per training frame, e.g. a per-sequence
+    NRSfM solver's, normalised as :func:`prn.data.normalize_3d` does): the
+    term ``label_weight * 1/2 sum ||X - L||^2`` over the labelled frames of
+    each minibatch, on the scale of the data term. ``label_decay="linear"``
+    lowers its weight linearly to 0 at the last iteration, so that the PR loss
+    alone shapes the end of training; ``"none"`` keeps it.
+
     ``network``: ``"fcn"`` (PRN-FCN on 2D points) or a torchvision backbone
     name (:data:`prn.images.BACKBONES`, ``"resnet50"`` as the paper) for
     PRN-CNN on the training set's images; ``pretrained`` starts the backbone
@@ -94,6 +102,8 @@ class TrainConfig:
     point_groups: int = 1
     network: str = "fcn"
     pretrained: bool = True
+    label_weight: float = 0.0
+    label_decay: str = "none"
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.groups < 1 or self.group_size < 2:
@@ -111,6 +121,15 @@ class TrainConfig:
             raise ValidationError(f"network: expected 'fcn' or one of {_backbones()}, got {self.network!r}")
         if self.lam < 0 or self.lr <= 0:
             raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
+        if self.label_weight < 0 or self.label_decay not in ("none", "linear"):
+            raise ValidationError(f"TrainConfig: expected label_weight >= 0 and label_decay 'none' or 'linear', "
+                                  f"got {self.label_weight}, {self.label_decay!r}")
+
+    def label_weight_at(self, iteration: int) -> float:
+        """The pseudo-labels' weight at ``iteration`` (``label_decay``)."""
+        if self.label_decay == "linear":
+            return self.label_weight * max(0.0, 1.0 - iteration / self.iterations)
+        return self.label_weight
 
     @property
     def phase_boundary(self) -> int:
@@ -183,13 +202,16 @@ class Objective(Protocol):
 
 def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str | os.PathLike | None = None, *,
           resume: bool = True, progress: bool = True, log_every: int = 100,
-          stop_after: int | None = None, objective: Objective | None = None) -> TrainResult:
+          stop_after: int | None = None, objective: Objective | None = None,
+          labels: np.ndarray | None = None) -> TrainResult:
     """Train PRN-FCN on ``data`` with the PR loss (or ``objective``).
 
     Args:
         data: from :func:`prn.data.build_training_set`.
         config: hyper-parameters; ``lam = 0`` trains "PRN w/o reg".
         objective: replaces the PR loss and the group sampling (same network, optimiser, schedule, checkpoints).
+        labels: with ``config.label_weight`` > 0, `(N, P, 3)` normalised pseudo-labels, one per training frame
+            of ``data`` (NaN: unlabelled), pulled towards beside the PR loss.
         out_dir: where ``checkpoint.pt`` and ``model.pt`` go (None: no files).
         resume: continue from ``out_dir/checkpoint.pt`` when it exists.
         progress: show a tqdm bar (quiet when stderr is not a terminal).
@@ -201,7 +223,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
     """
     with no_denormals():
         return _train(data, config, out_dir, resume=resume, progress=progress, log_every=log_every,
-                      stop_after=stop_after, objective=objective)
+                      stop_after=stop_after, objective=objective, labels=labels)
 
 
 def _point_groups(pred: torch.Tensor, y: torch.Tensor, w: torch.Tensor, k: int):
@@ -248,7 +270,7 @@ def no_denormals():
 
 
 def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, progress: bool, log_every: int,
-           stop_after: int | None, objective: Objective | None) -> TrainResult:
+           stop_after: int | None, objective: Objective | None, labels: np.ndarray | None) -> TrainResult:
     from tqdm.auto import tqdm
 
     device = pick_device(config.device)
@@ -291,6 +313,16 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
 
         return model(to_tensor(data.images[idx.cpu().numpy()], device))
 
+    if config.label_weight > 0:
+        if config.missing_points > 0:
+            raise ValidationError("label_weight > 0 with missing_points > 0: the pseudo-labels would need the "
+                                  "dropped points' normalisation; train one or the other")
+        if labels is None or objective is not None or np.shape(labels) != (len(data.inputs), data.n_points, 3):
+            raise ValidationError(f"label_weight > 0: expected labels of shape ({len(data.inputs)}, {data.n_points}, "
+                                  f"3) beside the PR loss, got {None if labels is None else np.shape(labels)}"
+                                  + (" with another objective" if objective is not None else ""))
+        labelled = torch.as_tensor(np.isfinite(labels).all(axis=(1, 2)), device=device)
+        label_all = torch.as_tensor(np.nan_to_num(labels), dtype=torch.float32, device=device)
     y_all = torch.as_tensor(data.targets, dtype=torch.float32, device=device)
     yw_all = torch.as_tensor(data.target_weights, dtype=torch.float32, device=device)
     parts = PRLossParts()
@@ -331,10 +363,15 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                 if visible:
                     x, y = renormalise(x_all[idx], xw), renormalise(y, yw)
             pred = forward(idx, xw, x)
+            pulled = None
+            if config.label_weight > 0:  # 1/2 sum ||X - L||^2 over the labelled frames
+                pulled = 0.5 * (((pred - label_all[idx]) * labelled[idx].to(pred.dtype)[:, None, None]) ** 2).sum()
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
             loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size,
                            parts=parts if logged else None)  # filling it waits for the device
+            if pulled is not None:
+                loss = loss + config.label_weight_at(it) * pulled
         opt.zero_grad(set_to_none=True)
         loss.backward()
         # on a GPU the check waits for the queued work, so it runs at the logged iterations and checkpoints only

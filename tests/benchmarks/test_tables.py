@@ -78,29 +78,75 @@ def test_missing_split_marks_the_ratio_of_test_entries_missing():
 
 
 def _tiny(spec, load):
-    return dataclasses.replace(spec, load=load, context={"width": 32, **{k: v for k, v in spec.context.items()
-                                                                        if k == "point_groups"}},
-                               synthetic_context=None)
+    """``spec`` on ``load``'s tiny data: a narrow network, the table's point groups and alignment groups (of 16
+    frames)."""
+    keep = {k: v for k, v in spec.context.items() if k in ("point_groups", "groups")}
+    if "groups" in keep:
+        keep["group_size"] = 16
+    return dataclasses.replace(spec, load=load, context={"width": 32, **keep}, synthetic_context=None)
 
 
 def test_table3_computes_every_row_on_tiny_faces(tmp_path, capsys):
     def load(args):
-        seqs = face_sequences(4, 40, seed=args.seed)
+        seqs = face_sequences(4, 24, seed=args.seed)
         return Split(seqs[:2], seqs[:2], seqs[2:], seqs[2:], "gt-ortho", sampling="random", tag="tiny-faces"), \
             {"data": "tiny faces"}
 
     spec = _tiny(table3.SPEC, load)
     args = harness.parser(spec).parse_args(["--iterations", "12", "--out", str(tmp_path), "--no-progress",
-                                            "--jobs", "1", "--c3dpo-batch", "16", "--plots"])
-    args.data = "synthetic"
+                                            "--jobs", "1", "--c3dpo-batch", "16", "--c3dpo-iterations", "6",
+                                            "--direct", "rank3", "--plots", "--data", "synthetic"])
     assert harness.run(spec, args) == 0
     data = json.loads((tmp_path / "table3.json").read_text())
-    assert set(data["results"]) == set(table3.PAPER) and not data["not_run"]
-    assert all(0 < r["error"] < 2 for r in data["results"].values())
+    errors = {r["method"]: r["error"] for r in data["results"]}
+    assert set(errors) == set(table3.ROWS) | {"rank3 on the test data"} and not data["not_run"]
+    assert table3.SPEC.direct == ("rank3", "pr", "empnd")
+    assert all(0 < e < 2 for e in errors.values())
     for f in ("table3.png", "table3_qualitative.png", "table3_curves.png"):
         assert (tmp_path / f).stat().st_size > 5000, f
     text = capsys.readouterr().out
-    assert "| PR + NN |" in text and "Pseudo-labels" in text
+    assert "| PR + NN |" in text and "| EM-PND + NN |" in text and "Pseudo-labels" in text
+    assert "| rank3 on the test data |" in text and "lr x0.8 every 5,000 iterations (the paper's)" in text
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["context"]["groups"] == 1 and table3.SPEC.context["group_size"] == 128  # faces: one alignment group
+
+
+def _aflw_files(root, n: int, seed: int = 0):
+    """AFLW2000-3D's release layout under ``root/aflw2000`` with ``n`` random faces."""
+    rng = np.random.default_rng(seed)
+    folder = root / "aflw2000"
+    folder.mkdir(parents=True)
+    x3 = rng.normal(size=(n, 3, 68)).astype(np.float32) * 20 + 100
+    np.save(folder / "AFLW2000-3D.pts68.npy", x3)
+    np.save(folder / "AFLW2000-3D-Reannotated.pts68.npy", x3[:, :2] + rng.normal(size=(n, 2, 68)).astype(np.float32))
+    np.save(folder / "AFLW2000-3D.pose.npy", np.linspace(-100, 100, n).astype(np.float32))
+    return x3
+
+
+def test_table3_reads_aflw2000_in_two_sections_with_yaw_bands(tmp_path, capsys, monkeypatch):
+    _aflw_files(tmp_path, 40)
+    monkeypatch.setenv("NRSFM_DATA", str(tmp_path))
+    out = tmp_path / "o"
+    assert table3.main(["--iterations", "6", "--c3dpo-iterations", "4", "--c3dpo-batch", "8", "--methods",
+                        "PRN-FCN,C3DPO", "--direct", "rank3", "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "#### fitted" in text and "#### reannotated" in text and "NE (paper, 300-VW)" in text
+    data = json.loads((out / "table3.json").read_text())
+    rows = {(r["section"], r["method"]): r for r in data["results"]}
+    assert set(rows) == {(s, m) for s in ("fitted", "reannotated") for m in ("PRN-FCN", "C3DPO",
+                                                                             "rank3 on the test data")}
+    first = rows[("fitted", "PRN-FCN")]
+    assert first["frames"] == 10 and first["paper_data"] == "300vw"  # the last 25% of 40 faces test
+    assert sum(b["frames"] for b in first["bands"].values()) == 10 and set(first["bands"]) <= {"0-30", "30-60",
+                                                                                                "60-90"}
+    assert data["meta"]["data"]["first_test_face"] == 30
+    # --validate: the first 80% of the 30 training faces train, the other 6 validate; no paper numbers
+    assert table3.main(["--iterations", "6", "--methods", "GT 3D", "--direct", "", "--validate", "--out",
+                        str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    data = json.loads((out / "table3.json").read_text())
+    assert {r["frames"] for r in data["results"]} == {6} and data["meta"]["data"]["first_test_face"] == 24
+    assert "validation faces" in text and "0.0441" not in text
 
 
 def test_table2_computes_every_row_from_rendered_images(tmp_path, capsys, monkeypatch):
@@ -112,8 +158,8 @@ def test_table2_computes_every_row_from_rendered_images(tmp_path, capsys, monkey
             "--jobs", "1", "--labels-dir", str(tmp_path / "shared-labels")]
     assert table2.main(argv) == 0
     data = json.loads((tmp_path / "table2.json").read_text())
-    assert set(data["results"]) == set(table2.PAPER) and not data["not_run"]
-    assert all(0 < r["error"] < 1000 for r in data["results"].values())
+    assert {r["method"] for r in data["results"]} == set(table2.PAPER) and not data["not_run"]
+    assert all(0 < r["error"] < 1000 for r in data["results"])
     assert data["meta"]["data"]["images"] == "rendered capsules, 32 px"
     text = capsys.readouterr().out
     assert "| PRN-CNN |" in text and "network: small" in text and "| spm | 20 | 0 |" not in text
@@ -150,8 +196,7 @@ def test_table4_trains_on_point_groups(tmp_path, capsys):
 
     spec = _tiny(table4.SPEC, load)
     args = harness.parser(spec).parse_args(["--iterations", "12", "--out", str(tmp_path), "--no-progress",
-                                            "--methods", "PRN-FCN,PRN w/o reg"])
-    args.data = "synthetic"
+                                            "--methods", "PRN-FCN,PRN w/o reg", "--data", "synthetic"])
     assert harness.run(spec, args) == 0
     meta = json.loads((tmp_path / "meta.json").read_text())
     assert meta["context"] == {"width": 32, "point_groups": 8}
@@ -165,8 +210,10 @@ def test_tables_refuse_bad_arguments(tmp_path, capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
-def test_table3_without_300vw_is_a_clear_error(tmp_path, capsys):
+def test_table3_without_faces_is_a_clear_error(tmp_path, capsys):
     assert table3.main(["--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "--root: expected 300vw-3d or aflw2000 under" in capsys.readouterr().err
+    assert table3.main(["--data", "300vw", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "300vw-3d: expected a dataset folder" in capsys.readouterr().err
 
 
@@ -194,8 +241,10 @@ def test_all_runs_the_chosen_tables_and_summarises(tmp_path, capsys, monkeypatch
         out = tmp_path / "o" / "table3"
         out.mkdir(parents=True)
         (out / "table3.json").write_text(json.dumps({"meta": {"data": {"data": "synthetic faces"}}, "paper": {},
-                                                     "results": {"PRN-FCN": {"error": 0.2, "frames": 9},
-                                                                 "PRN w/o reg": {"error": 0.4, "frames": 9}}}))
+                                                     "results": [{"section": "", "method": "PRN-FCN", "error": 0.2,
+                                                                  "frames": 9, "paper": None},
+                                                                 {"section": "", "method": "PRN w/o reg",
+                                                                  "error": 0.4, "frames": 9, "paper": None}]}))
         assert "--quick" in argv and "--plots" in argv
         return 0
 
