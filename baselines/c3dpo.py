@@ -32,10 +32,13 @@ rotations (drawn by the model, not the workers). ``repeat = 8`` trains that way:
 anew each epoch), which restricts the data to about 156,000 draws; that part is not reproduced (a smaller training
 set alone left the error unchanged, ``benchmarks/RESULTS.md``).
 
-Inputs as the authors': keypoints centred on the visible ones, every frame divided by one scale (the benchmark
-harness uses the training frames' median xy norm), so that a frame's size stays a cue; dividing each frame by its
-own xy norm, as PRN's inputs are, makes the same body change size with the viewpoint, which a linear shape basis
-with a rotation cannot fit (both are measured in benchmarks/RESULTS.md; ``--c3dpo-inputs prn`` selects PRN's).
+Inputs: the model reads the keypoints it is given (centred on the visible ones inside the model). The benchmark
+harness gives it the authors' Human3.6M inputs by default (``benchmarks.methods.c3dpo_inputs``, ``"hip"``): as
+the C3DPO authors answered on their issue tracker, their ``kp_loc`` follows Kudo et al. ("Unsupervised Adversarial
+Learning of 3D Human Pose from 2D Joint Locations", ``pose_dataset.py``): each frame centred on the hip and divided
+by its mean hip-to-joint distance, and the 3D scaled alike, that scale turning errors back into millimetres. Two
+other normalisations stay selectable for comparison: one global scale for every frame (``"centred"``) and PRN's
+per-frame xy norm (``"prn"``).
 """
 
 from __future__ import annotations

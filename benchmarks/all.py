@@ -6,9 +6,10 @@
 Each table runs as ``python -m benchmarks.<table>`` would, writing its own folder under ``--out``
 (``runs/all[-quick]`` by default) with its Markdown, CSV, JSON and figures; trained models and pseudo-labels are
 cached there (the pseudo-labels in one folder that every table shares), so an interrupted run resumes where it
-stopped. With ``--root`` every table reads the real data it finds there (Human3.6M ``h36m/`` and its frames
-``h36m/images/``, ``300vw-3d/`` and the frames in ``300vw/``, ``surreal/``) and falls back to its embedded
-stand-in where a folder is absent (stated in the summary); without it every table runs on its stand-in.
+stopped. Every table reads the real data it finds under ``--root`` (default ``$NRSFM_DATA``): Human3.6M ``h36m/``
+(Table 1 then on all three inputs, GT-ortho, GT-persp and SH) and its frames ``h36m/images/``, ``300vw-3d/`` or
+``aflw2000/`` and the frames in ``300vw/``, SURREAL's ``surreal/train`` and ``surreal/test``; where a table's
+folder is absent it runs on its embedded stand-in (stated in the summary).
 
 The summary (``summary.md``) lists every row of every table with its number and the paper's, the data each ran
 on, its wall time, and whether PRN (PRN-FCN, PRN-CNN) beats PRN w/o reg in that table.
@@ -31,9 +32,21 @@ from nrsfm.datasets import find_dataset
 
 log = logging.getLogger("benchmarks.all")
 
-#: Table module -> the dataset folders of its real data.
-TABLES = {"table1": ("h36m",), "table2": ("h36m", "h36m/images"), "table_s1": ("h36m",), "table3": ("300vw-3d",),
-          "table_s2": ("300vw-3d", "300vw"), "table4": ("surreal",)}
+#: The tables, in the order they run.
+TABLES = ("table1", "table2", "table_s1", "table3", "table_s2", "table4")
+
+
+def datasets(name: str) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """The real datasets a table reads: (name, dataset folders), in order of priority."""
+    if name in ("table1", "table_s1"):
+        return (("h36m", ("h36m",)),)
+    return importlib.import_module(f"benchmarks.{name}").SPEC.datasets
+
+
+def has_data(name: str, root: str | None) -> bool:
+    """Whether ``root`` holds the real data of table ``name``."""
+    return root is not None and any(all(find_dataset(f, root, required=False) is not None for f in folders)
+                                    for _, folders in datasets(name))
 
 
 def _rows(name: str, folder: Path) -> list[tuple[str, float | None, float | None]]:
@@ -54,8 +67,9 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
     argv = ["--out", str(out), "--no-progress"]
     if args.quick:
         argv.append("--quick")
-    if real:
-        argv += ["--root", args.root]
+    argv += ["--root", args.root] if real else ["--data", "synthetic"]
+    if real and name == "table1":
+        argv += ["--input", "all"]
     if name != "table_s1":
         argv += ["--jobs", str(args.jobs), "--plots", "--labels-dir", str(out.parent / "labels")]
     argv += ["--device", args.device]
@@ -65,12 +79,17 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.all", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="every table's short schedule on small data")
-    p.add_argument("--root", help="data folder (default: none, every table on its embedded stand-in)")
+    p.add_argument("--root", help="data folder (default: $NRSFM_DATA; a table whose data is not there runs on its "
+                                  "embedded stand-in)")
     p.add_argument("--out", default=None, help="output folder (default: runs/all[-quick])")
     p.add_argument("--tables", default=",".join(TABLES), help=f"comma-separated among {list(TABLES)}")
     p.add_argument("--jobs", type=int, default=2, help="parallel pseudo-label solves")
     p.add_argument("--device", default="auto")
     args = p.parse_args(argv)
+    from nrsfm.datasets import data_root
+
+    root = data_root(args.root)
+    args.root = None if root is None else str(root)
     names = [t.strip() for t in args.tables.split(",")]
     bad = [t for t in names if t not in TABLES]
     if bad:
@@ -85,8 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     bar = tqdm(names, desc="tables", unit="table")
     for name in bar:
         bar.set_postfix_str(name)
-        real = args.root is not None and all(find_dataset(d, args.root, required=False) is not None
-                                             for d in TABLES[name])
+        real = has_data(name, args.root)
         folder = out / name
         t = time.perf_counter()
         printed = io.StringIO()

@@ -47,6 +47,7 @@ import numpy as np
 from nrsfm.datasets.synthetic import drop_entries
 
 from benchmarks.common import (add_run_arguments, code_hash, markdown_table, run_cells_from_args, run_metadata,
+                               worker_count,
                                write_csv, write_json)
 
 log = logging.getLogger("benchmarks.classic")
@@ -152,14 +153,6 @@ def benchmark_sequences(root: str | None, sequences: str | None, who: str) -> tu
     return folder, files
 
 
-def _jobs(text: str) -> int:
-    """joblib's ``n_jobs``: N workers, or -1 for every core, -2 for all but one, ... (0 means nothing)."""
-    value = int(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError("expected a number of workers >= 1, or -1 for every core; got 0")
-    return value
-
-
 def _non_negative(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -177,7 +170,7 @@ def add_data_arguments(parser: argparse.ArgumentParser, jobs_help: str) -> None:
     :func:`benchmark_sequences`)."""
     parser.add_argument("--root", help="data folder holding nrsfm/ (default: $NRSFM_DATA; neither: synthetic "
                                        "stand-ins)")
-    parser.add_argument("--jobs", type=_jobs, default=1, help=jobs_help)
+    parser.add_argument("--jobs", type=worker_count, default=1, help=jobs_help)
     parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all files)")
 
 

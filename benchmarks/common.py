@@ -92,6 +92,15 @@ def run_cells(cells: Sequence[tuple[str, dict[str, Any], tuple]], fn: Callable[.
     return results, reused
 
 
+def worker_count(text: str) -> int:
+    """joblib's ``n_jobs`` as a command-line value: N workers, or -1 for every core, -2 for all but one, ... (0
+    means nothing)."""
+    value = int(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("expected a number of workers >= 1, or -1 for every core; got 0")
+    return value
+
+
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """``--rerun`` and ``--no-progress``: the options of :func:`run_cells_from_args`."""
     parser.add_argument("--rerun", action="store_true",
@@ -105,11 +114,9 @@ def parse_study_arguments(name: str, doc: str, argv: list[str] | None,
     """The command line of ``python -m benchmarks.studies.NAME`` over the validation set of ``benchmarks.defaults``:
     ``--root``, ``--jobs``, the study's ``options``, ``--out`` (default ``runs/NAME``) and
     :func:`add_run_arguments`; then INFO logging on stderr."""
-    from benchmarks.classic import _jobs
-
     p = argparse.ArgumentParser(prog=f"python -m benchmarks.studies.{name}", description=doc.split("\n\n")[0])
     p.add_argument("--root", help="data folder holding h36m/ and nrsfm/ (default: $NRSFM_DATA)")
-    p.add_argument("--jobs", type=_jobs, default=1, help="parallel sequences (joblib)")
+    p.add_argument("--jobs", type=worker_count, default=1, help="parallel sequences (joblib)")
     options(p)
     p.add_argument("--out", default=f"runs/{name}", help=f"output folder (default: runs/{name})")
     add_run_arguments(p)

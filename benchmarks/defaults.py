@@ -216,15 +216,15 @@ def main(argv: list[str] | None = None) -> int:
     from nrsfm.solvers import available_solvers
     from nrsfm.solvers.kselect import FILLS
 
-    from benchmarks.classic import _jobs, benchmark_sequences, job_identity
-    from benchmarks.common import add_run_arguments
+    from benchmarks.classic import benchmark_sequences, job_identity
+    from benchmarks.common import add_run_arguments, worker_count
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.defaults", description=__doc__.split("\n\n")[0])
     p.add_argument("--set", choices=("validation", "test", "holdout", "cmu"), default="validation", dest="which",
                    help="the validation set (default), the held-out test set, the second held-out set (S9) or "
                         "the CMU files the defaults were tuned on")
     p.add_argument("--root", help="data folder holding h36m/ and nrsfm/ (default: $NRSFM_DATA)")
-    p.add_argument("--jobs", type=_jobs, default=1, help="parallel cells (joblib)")
+    p.add_argument("--jobs", type=worker_count, default=1, help="parallel cells (joblib)")
     p.add_argument("--methods", default=None, help="comma-separated solvers (default: all registered but rank3)")
     p.add_argument("--missing", default="0", help="comma-separated fractions of entries to mark missing")
     p.add_argument("--fill", choices=FILLS, default="auto",

@@ -1,7 +1,8 @@
 """The paper's comparison figures, as PNG files written by the tables' ``--plots``.
 
-- :func:`qualitative`: for chosen test frames, the 2D input, each method's 3D and the ground truth, every 3D
-  panel with the same view and the same axis limits, left limbs red and right limbs blue (the paper's Fig. 3).
+- :func:`qualitative`: for chosen test frames, the 2D input, then each method's 3D and the ground truth from the
+  front and from the side (the XY and YZ planes, as the paper's figures), every panel of a frame at one scale,
+  left limbs red and right limbs blue.
 - :func:`per_action_bars`: one group of bars per action, one bar per method, the paper's values as markers.
 - :func:`training_curves`: the training loss of every learned row against the iteration (log scale).
 """
@@ -41,55 +42,62 @@ def limb_colours(edges, joint_names=None) -> list[str]:
 
 
 def qualitative(path: Path, inputs_2d: np.ndarray, shapes: dict[str, np.ndarray], edges, joint_names=None, *,
-                title: str = "", elev: float = 15.0, azim: float = -70.0, images: np.ndarray | None = None) -> None:
-    """Rows: test frames; columns: the 2D input (or the input image, ``images`` `(n, H, W, 3)` uint8), then every
-    entry of ``shapes`` (name -> `(n, P, 3)`, the ground truth among them, last by convention), in millimetres,
-    camera frame (x right, y down, z away). Without ``edges`` the points are drawn as dots, coloured by depth."""
+                title: str = "", images: np.ndarray | None = None) -> None:
+    """Rows: test frames; columns: the 2D input (or the input image, ``images`` `(n, H, W, 3)` uint8), then for
+    every entry of ``shapes`` (name -> `(n, P, 3)`, the ground truth among them, last by convention; millimetres,
+    camera frame, x right, y down, z away) its front view (x, y) and its side view (z, y), as the paper's figures
+    show the XY and YZ planes. Every panel of a row has the same scale and is filled by the largest shape of the
+    row. Without ``edges`` the points are drawn as dots, coloured by depth."""
     plt = pyplot()
     n = len(inputs_2d)
     names = list(shapes)
     edges = [] if edges is None else [tuple(e) for e in edges]
     colours = limb_colours(edges, joint_names)
     dots = not edges  # a point cloud (dense surfaces): points instead of limbs
-    fig = plt.figure(figsize=(2.3 * (len(names) + 1), 2.3 * n))
+    cols = 1 + 2 * len(names)
+    fig, axes = plt.subplots(n, cols, figsize=(1.6 * cols, 1.9 * n), squeeze=False)
+
+    def draw(ax, u, v, depth):
+        for (a, b), c in zip(edges, colours):
+            ax.plot(u[[a, b]], v[[a, b]], color=c, lw=1.3)
+        if dots:
+            ax.scatter(u, v, s=1, c=depth, cmap="viridis")
+        elif len(u) > 30:  # many points (faces): the landmarks too
+            ax.scatter(u, v, s=0.8, c=CENTRE)
+
     for r in range(n):
-        ax = fig.add_subplot(n, len(names) + 1, r * (len(names) + 1) + 1)
+        ax = axes[r, 0]
         if images is not None:
             ax.imshow(images[r])
         else:
-            x = inputs_2d[r]
-            for (a, b), c in zip(edges, colours):
-                ax.plot(x[[a, b], 0], x[[a, b], 1], color=c, lw=1.5)
-            if dots:
-                ax.scatter(x[:, 0], x[:, 1], s=1, c=CENTRE)
+            x = inputs_2d[r] - np.nanmean(inputs_2d[r], axis=0)
+            draw(ax, x[:, 0], x[:, 1], np.zeros(len(x)))
+            half = np.nanmax(np.abs(x)) * 1.08
+            ax.set_xlim(-half, half)
+            ax.set_ylim(half, -half)  # y down, as in the image
             ax.set_aspect("equal")
-            ax.invert_yaxis()
+        if r == 0:
+            ax.set_title("input image" if images is not None else "2D input", fontsize=7)
+        frame = np.stack([shapes[k][r] - shapes[k][r].mean(axis=0) for k in names])  # (M, P, 3)
+        half = np.abs(frame).max() * 1.08  # one scale for every panel of this frame
+        for j, name in enumerate(names):
+            s = frame[j]
+            for k, (u, label) in enumerate(((s[:, 0], "front"), (s[:, 2], "side"))):
+                ax = axes[r, 1 + 2 * j + k]
+                draw(ax, u, s[:, 1], s[:, 2])
+                ax.set_xlim(-half, half)
+                ax.set_ylim(half, -half)
+                ax.set_aspect("equal")
+                if r == 0:
+                    ax.set_title(f"{name}\n{label}" if k == 0 else label, fontsize=7)
+    for ax in axes.flat:
         ax.set_xticks([])
         ax.set_yticks([])
-        if r == 0:
-            ax.set_title("input image" if images is not None else "2D input", fontsize=8)
-        frame = np.stack([shapes[k][r] - shapes[k][r].mean(axis=0) for k in names])  # (M, P, 3)
-        half = np.abs(frame).max()  # one cube for every method of this frame
-        for j, name in enumerate(names):
-            ax = fig.add_subplot(n, len(names) + 1, r * (len(names) + 1) + j + 2, projection="3d")
-            s = frame[j]
-            for (a, b), c in zip(edges, colours):  # plotted as (x, z, -y): y down in the camera, up on screen
-                ax.plot(s[[a, b], 0], s[[a, b], 2], -s[[a, b], 1], color=c, lw=1.5)
-            if dots:
-                ax.scatter(s[:, 0], s[:, 2], -s[:, 1], s=1, c=s[:, 2], cmap="viridis")
-            ax.set_xlim(-half, half)
-            ax.set_ylim(-half, half)
-            ax.set_zlim(-half, half)
-            ax.set_box_aspect((1, 1, 1))
-            ax.view_init(elev=elev, azim=azim)
-            ax.set_xticklabels([])
-            ax.set_yticklabels([])
-            ax.set_zticklabels([])
-            if r == 0:
-                ax.set_title(name, fontsize=8)
+        for spine in ax.spines.values():
+            spine.set_linewidth(0.4)
     if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout(pad=0.3, w_pad=0.2, h_pad=0.4)
     save(fig, path)
 
 
@@ -153,14 +161,15 @@ def training_curves(path: Path, caches: dict[str, Path], *, title: str = "") -> 
 def shapes_for_frames(predictions: dict[str, list[np.ndarray]], truth: list, frames) -> dict[str, np.ndarray]:
     """De-normalised, centred predictions of each method at ``frames`` (:func:`pick_frames`), each mirrored in
     depth where that is closer to the ground truth (as the metrics choose the sign), and the ground truth last."""
-    from prn.data import denormalize
+    from benchmarks.registry import millimetres
 
     out = {}
     for name, preds in predictions.items():
         rows = []
+        mm = millimetres(preds, truth)
         for i, t in frames:
             gt = truth[i].points_3d[t] - truth[i].points_3d[t].mean(axis=0)
-            p = denormalize(preds[i][t:t + 1], truth[i].points_3d[t:t + 1])[0]
+            p = mm[i][t]
             p = p - p.mean(axis=0)
             m = p * np.array([1.0, 1.0, -1.0])
             rows.append(m if np.linalg.norm(m - gt) < np.linalg.norm(p - gt) else p)
@@ -170,6 +179,11 @@ def shapes_for_frames(predictions: dict[str, list[np.ndarray]], truth: list, fra
 
 
 def pick_frames(truth: list, n: int = 4) -> list[tuple[int, int]]:
-    """``n`` (sequence, frame) pairs spread evenly over the test sequences, each at its sequence's middle."""
-    idx = np.linspace(0, len(truth) - 1, min(n, len(truth))).round().astype(int)
-    return [(int(i), truth[i].n_frames // 2) for i in idx]
+    """``n`` (sequence, frame) pairs spread evenly over the test frames (each sequence's middle frame where there
+    are at least ``n`` sequences)."""
+    if len(truth) >= n:
+        idx = np.linspace(0, len(truth) - 1, n).round().astype(int)
+        return [(int(i), truth[i].n_frames // 2) for i in idx]
+    flat = [(i, t) for i, s in enumerate(truth) for t in range(s.n_frames)]
+    picks = np.linspace(0, len(flat) - 1, n + 2)[1:-1].round().astype(int)
+    return [flat[k] for k in picks]

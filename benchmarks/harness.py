@@ -22,7 +22,8 @@ import numpy as np
 
 from benchmarks.common import (add_training_arguments, choose_data, labels_dir, markdown_table, run_metadata, run_table,
                                write_csv, write_json)
-from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, Predictions, RunContext, Split, methods, millimetres,
+from benchmarks.methods import methods
+from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, Predictions, RunContext, Split, millimetres,
                                  schedule_text)
 from nrsfm.errors import ValidationError
 

@@ -10,7 +10,9 @@ import logging
 
 import numpy as np
 
-from benchmarks.registry import Predictions, RunContext, Split, register_method, schedule
+from benchmarks.registry import (Method, NotRun, Predictions, RunContext, Split, millimetres, register_method,
+                                 registered, schedule)
+from nrsfm.errors import ValidationError
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +111,6 @@ def has_scores(seqs: list) -> bool:
 @register_method("PRN-FCN-W", ("sh",), "PRN-FCN whose data term weighs each point by its detection score (the "
                                        "input's visibility in (0, 1])")
 def prn_fcn_w(split: Split, ctx: RunContext) -> list[np.ndarray]:
-    from benchmarks.registry import NotRun
-
     if not has_scores(split.train_inputs):
         raise NotRun("these detections carry no scores (every visibility is 0 or 1)")
     return _train_prn(split, ctx, "PRN-FCN-W", 0.05, scores=True)
@@ -345,7 +345,6 @@ def c3dpo_test_predictions(model, split: Split, unit: float, inputs: str) -> Pre
 @register_method("C3DPO", ("gt-ortho", "gt-persp", "sh"), "C3DPO (Novotny et al., ICCV 2019), reimplemented")
 def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     from baselines.c3dpo import PAPER_ITERATIONS, C3DPOConfig, load_c3dpo, train_c3dpo
-    from benchmarks.registry import millimetres
     from nrsfm.metrics import mpjpe_prn
 
     unit = c3dpo_unit(split.train_inputs, ctx.c3dpo_inputs)
@@ -379,3 +378,16 @@ def c3dpo(split: Split, ctx: RunContext) -> list[np.ndarray]:
     if info.get("monitor"):
         ctx.timings[key]["monitor"] = info["monitor"]
     return c3dpo_test_predictions(model, split, unit, ctx.c3dpo_inputs)
+
+
+def methods() -> dict[str, Method]:
+    """Every registered row, the built-in ones above included."""
+    return registered()
+
+
+def get_method(name: str) -> Method:
+    """The registered row ``name``."""
+    m = methods()
+    if name not in m:
+        raise ValidationError(f"method: expected one of {list(m)}, got {name!r}")
+    return m[name]

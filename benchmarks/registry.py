@@ -1,9 +1,9 @@
-"""Learned methods of the Human3.6M-style tables, as registry entries.
+"""The table rows' registry and what they share: the data split, the run's options, predictions, the schedule.
 
-A method is a function ``run(split, ctx) -> list of (F, P, 3)`` normalised
-predictions for ``split.test_inputs`` (scaled back to millimetres by the
-harness with the PRN protocol). Baselines become table rows by calling
-:func:`register_method`; the table code never changes.
+A method is a function ``run(split, ctx) -> list of (F, P, 3)`` normalised predictions for ``split.test_inputs``
+(scaled back to millimetres by :func:`millimetres`). Baselines become table rows by calling
+:func:`register_method`; the table code never changes. The built-in rows live in :mod:`benchmarks.methods`,
+whose :func:`~benchmarks.methods.methods` lists every registered row.
 """
 
 from __future__ import annotations
@@ -152,17 +152,9 @@ def register_method(name: str, inputs: tuple[str, ...], description: str):
     return deco
 
 
-def methods() -> dict[str, Method]:
-    import benchmarks.methods  # noqa: F401  (registers the built-in rows)
-
+def registered() -> dict[str, Method]:
+    """The rows registered so far (:func:`benchmarks.methods.methods` adds the built-in ones)."""
     return dict(_METHODS)
-
-
-def get_method(name: str) -> Method:
-    m = methods()
-    if name not in m:
-        raise ValidationError(f"method: expected one of {list(m)}, got {name!r}")
-    return m[name]
 
 
 def schedule(iterations: int, compress: bool = False, **overrides):

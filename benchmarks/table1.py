@@ -34,8 +34,8 @@ import numpy as np
 
 from benchmarks.common import (add_training_arguments, choose_data, labels_dir, markdown_table, run_metadata,
                                run_table, write_csv, write_json)
-from benchmarks.methods import C3DPO_INPUTS
-from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, RunContext, Split, methods, millimetres,
+from benchmarks.methods import C3DPO_INPUTS, methods
+from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, RunContext, Split, millimetres,
                                  schedule_text)
 from nrsfm.datasets import h36m
 from nrsfm.errors import ValidationError

@@ -45,7 +45,8 @@ import numpy as np
 
 from benchmarks.common import (add_training_arguments, choose_data, markdown_table, parse_fractions, run_metadata,
                                run_table, write_csv, write_json)
-from benchmarks.registry import Predictions, RunContext, Split, methods, millimetres, schedule_text
+from benchmarks.methods import methods
+from benchmarks.registry import Predictions, RunContext, Split, millimetres, schedule_text
 from benchmarks.table1 import evaluate, load_splits
 from nrsfm.datasets.synthetic import drop_entries
 from nrsfm.errors import ValidationError
