@@ -100,7 +100,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def documented_commands() -> list[tuple[str, str, list[str]]]:
     """(document, module, options) of every ``python -m MODULE ...`` command in the documents' code, the
-    ``--option`` words of each."""
+    ``--option`` words of each (placeholders such as ``benchmarks.<table>`` or ``studies.NAME`` left out)."""
     out = []
     for doc in DOCUMENTS:
         path = ROOT / doc
@@ -111,7 +111,7 @@ def documented_commands() -> list[tuple[str, str, list[str]]]:
         for line in code.splitlines():
             for m in re.finditer(r"python -m ([\w.]+)([^|;&#]*)", line):
                 module = m.group(1)
-                if module.split(".")[0] in PACKAGES:
+                if module.split(".")[0] in PACKAGES and re.fullmatch(r"[a-z_][a-z0-9_]*(\.[a-z_][a-z0-9_]*)*", module):
                     out.append((doc, module, re.findall(r"(--[\w-]+)", m.group(2))))
     return out
 
@@ -134,3 +134,10 @@ def test_every_documented_command_exists_and_accepts_its_options():
             helps[module] = _help(module)
         unknown = [o for o in options if not re.search(rf"(?<![\w-]){re.escape(o)}(?![\w-])", helps[module])]
         assert not unknown, f"{doc}: python -m {module} does not accept {unknown}"
+
+
+def test_every_study_is_listed_with_what_it_backs_and_every_listed_study_exists():
+    text = (ROOT / "benchmarks" / "README.md").read_text().split("## Studies behind the defaults", 1)[1]
+    listed = set(re.findall(r"^\| `(\w+)` \| (?=\S)", text, re.M))
+    present = {p.stem for p in (ROOT / "benchmarks" / "studies").glob("*.py") if p.stem != "__init__"}
+    assert listed == present
