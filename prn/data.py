@@ -128,6 +128,9 @@ class TrainingSet:
         out = []
         for _ in range(n_groups):
             if self.sampling == "random":
+                if group_size > len(self.inputs):
+                    raise ValidationError(f"group sampling: expected at least {group_size} training frames for a "
+                                          f"group, got {len(self.inputs)}; lower group_size")
                 out.append(rng.choice(len(self.inputs), size=group_size, replace=False))
                 continue
             step = gap if self.sampling == "multiview" else 1

@@ -1,11 +1,11 @@
 """A trained C3DPO's 3D error on its own training data beside its test error.
 
     python -m benchmarks.studies.c3dpo_fit MODEL [--root DIR] [--input gt-ortho|gt-persp] [--fraction 0.17]
-                                           [--c3dpo-inputs centred|prn] [--seed 0] [--out DIR]
+                                           [--c3dpo-inputs hip|centred|prn] [--seed 0] [--out DIR]
 
 MODEL is a ``model.pt`` that ``benchmarks.table1`` trained (under ``<out>/cache/C3DPO-*/``). The keypoints are
-prepared as the harness prepares them for C3DPO (:func:`benchmarks.methods.c3dpo_inputs`, the training frames'
-median xy norm as the unit), and the predictions are scored with PRN's protocol (MPJPE, mm) on a random
+prepared as the harness prepares them for C3DPO (:func:`benchmarks.methods.c3dpo_inputs`; ``--c3dpo-inputs`` as
+when the model was trained), and the predictions are scored with PRN's protocol (MPJPE, mm) on a random
 ``fraction`` of the training sequences (S1, S5-S8; drawn with ``seed``) and on every test sequence. C3DPO never
 sees 3D, so a training error as high as the test error says the model's objective settles there on its own
 training data: the error is not over-fitting. Beside each, the mean distance between the image coordinates of
@@ -22,16 +22,19 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import markdown_table, run_metadata, run_table, write_json
+from benchmarks.methods import C3DPO_INPUTS
 from nrsfm.errors import ValidationError
 
 
 def mpjpe_of(model, sequences: list, unit: float, inputs: str) -> tuple[float, int]:
-    """PRN-protocol MPJPE (mm) of ``model`` over ``sequences`` and their frame count."""
-    from benchmarks.methods import c3dpo_predict
+    """PRN-protocol MPJPE (mm) of ``model`` over ``sequences`` and their frame count, scaled back as the harness
+    scales C3DPO's test predictions (:func:`benchmarks.methods.c3dpo_test_predictions`)."""
+    from benchmarks.methods import c3dpo_test_predictions
+    from benchmarks.registry import Split, millimetres
     from nrsfm.metrics import mpjpe_prn
-    from prn.data import denormalize
 
-    pred = np.concatenate([denormalize(c3dpo_predict(model, s, unit, inputs), s.points_3d) for s in sequences])
+    preds = c3dpo_test_predictions(model, Split([], [], sequences, sequences, "gt-ortho"), unit, inputs)
+    pred = np.concatenate(millimetres(preds, sequences))
     truth = np.concatenate([s.points_3d for s in sequences])
     return mpjpe_prn(pred, truth), len(truth)
 
@@ -85,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--root", default=None, help="data folder holding h36m/ (default: $NRSFM_DATA)")
     p.add_argument("--input", default="gt-ortho", choices=("gt-ortho", "gt-persp"))
     p.add_argument("--fraction", type=float, default=0.17, help="share of the training sequences scored")
-    p.add_argument("--c3dpo-inputs", default="centred", choices=("centred", "prn"),
+    p.add_argument("--c3dpo-inputs", default="hip", choices=C3DPO_INPUTS,
                    help="as --c3dpo-inputs of benchmarks.table1 when the model was trained")
     p.add_argument("--stride", type=int, default=1, help="Human3.6M frame stride (5 for the public 50 fps files)")
     p.add_argument("--seed", type=int, default=0)

@@ -76,15 +76,15 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from benchmarks import table1
-    from prn.data import denormalize
+    from benchmarks.registry import millimetres
 
     rows = table1.run_rows(args, keep_predictions=True)
     table, per_action = [], {}
     for (name, inp), preds in rows.predictions.items():
         split = rows.splits[inp]
         frames: dict[str, list[dict]] = defaultdict(list)
-        for pred, truth in zip(preds, split.test_truth):
-            parts = error_parts_per_frame(denormalize(pred, truth.points_3d), truth.points_3d)
+        for pred, truth in zip(millimetres(preds, split.test_truth), split.test_truth):
+            parts = error_parts_per_frame(pred, truth.points_3d)
             frames[truth.meta.get("action", "all")].append(parts)
         joined = {a: {k: np.concatenate([f[k] for f in v]) for k in v[0]} for a, v in frames.items()}
         every = {k: np.concatenate([v[k] for v in joined.values()]) for k in next(iter(joined.values()))}

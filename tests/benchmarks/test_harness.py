@@ -599,7 +599,7 @@ def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred")
     pred = c3dpo(split, ctx)[0]
     model = load_c3dpo(next((tmp_path / "cache").glob("C3DPO-*/model.pt")), "cpu")
-    error, frames = c3dpo_fit.mpjpe_of(model, seqs[:1], c3dpo_unit(seqs), "centred")
+    error, frames = c3dpo_fit.mpjpe_of(model, seqs[:1], c3dpo_unit(seqs, "centred"), "centred")
     assert frames == seqs[0].n_frames
     assert error == pytest.approx(evaluate([pred], seqs[:1])["Avg"][0], rel=1e-6)
     # the shapes' own image coordinates: the depth the table scores, but not the input's xy
@@ -608,11 +608,11 @@ def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     from baselines.c3dpo import _centre
     from benchmarks.methods import c3dpo_inputs, c3dpo_predict
 
-    unit = c3dpo_unit(seqs)
+    unit = c3dpo_unit(seqs, "centred")
     raw = c3dpo_predict(model, seqs[0], unit, "centred", replace_keypoints_with_input=False)
     np.testing.assert_allclose(raw[..., 2], pred[..., 2], rtol=1e-9)
     assert not np.allclose(raw[..., :2], pred[..., :2])
-    x, v = c3dpo_inputs(seqs[:1], unit, "centred")  # GT-ortho: the 2D is the ground truth's xy, so mm = unit
+    x, v, _ = c3dpo_inputs(seqs[:1], unit, "centred")  # GT-ortho: the 2D is the ground truth's xy, so mm = unit
     w = torch.as_tensor(_centre(x, v), dtype=torch.float32)
     with torch.no_grad():
         cam = model(w, torch.as_tensor(v, dtype=torch.float32))["camera"]
@@ -678,7 +678,7 @@ def test_error_parts_runs_the_table_rows_and_writes_its_table(tmp_path, capsys, 
     # the table's own numbers: the same rows read back from the cache
     assert table1.main(argv) == 0
     avg = {r["method"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in
-           json.loads((tmp_path / "table1.json").read_text())["results"]}
+           json.loads((tmp_path / "table1.json").read_text())["results"] if r["protocol"] == "prn"}
     assert first["MPJPE (mm)"] == pytest.approx(avg[first["row"]], rel=1e-9)
     assert error_parts.main(argv[:-1] + ["nonesuch"]) == 2
     assert "--methods: expected names" in capsys.readouterr().err

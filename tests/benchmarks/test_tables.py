@@ -126,6 +126,8 @@ def _aflw_files(root, n: int, seed: int = 0):
 def test_table3_reads_aflw2000_in_two_sections_with_yaw_bands(tmp_path, capsys, monkeypatch):
     _aflw_files(tmp_path, 40)
     monkeypatch.setenv("NRSFM_DATA", str(tmp_path))
+    monkeypatch.setattr(table3, "SPEC", dataclasses.replace(table3.SPEC, context={
+        **table3.SPEC.context, "width": 32, "group_size": 12}))  # 30 training faces: groups of 12
     out = tmp_path / "o"
     assert table3.main(["--iterations", "6", "--c3dpo-iterations", "4", "--c3dpo-batch", "8", "--methods",
                         "PRN-FCN,C3DPO", "--direct", "rank3", "--out", str(out), "--no-progress"]) == 0
@@ -199,7 +201,7 @@ def test_table4_trains_on_point_groups(tmp_path, capsys):
                                             "--methods", "PRN-FCN,PRN w/o reg", "--data", "synthetic"])
     assert harness.run(spec, args) == 0
     meta = json.loads((tmp_path / "meta.json").read_text())
-    assert meta["context"] == {"width": 32, "point_groups": 8}
+    assert meta["context"] == {"width": 32, "point_groups": 8, "c3dpo_batch": 1024}
     assert "C3DPO (paper; not selected with --methods)" in capsys.readouterr().out
 
 
