@@ -348,6 +348,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="default: h36m with --root, or when $NRSFM_DATA has h36m/; else the synthetic stand-in")
     p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA); implies --data h36m")
     p.add_argument("--method", "-m", default="csf2", help="registered solver (default csf2)")
+    p.add_argument("--input", choices=["gt-ortho", "gt-persp", "sh"], default="gt-ortho",
+                   help="Human3.6M's 2D: GT-ortho (default), GT-persp or the Stacked Hourglass detections (both as "
+                        "weak-perspective tracks)")
+    p.add_argument("--subjects", default=None, help="comma-separated training subjects (default: every one present)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a solver parameter")
     p.add_argument("--gap", type=int, default=5, help="frames between a cut's frames (default 5, as PRN)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
@@ -393,12 +397,18 @@ def _training_sequences(args: argparse.Namespace) -> tuple[list[Sequence], str]:
         return (human_sequences(h36m.TRAIN_SUBJECTS, projection="orthographic", n_frames=200, takes=2),
                 "synthetic-200-2-0-gt-ortho")
     subjects = [s for s in h36m.TRAIN_SUBJECTS if (root / s).is_dir()]
+    if args.subjects:
+        wanted = [s.strip() for s in args.subjects.split(",")]
+        if not set(wanted) <= set(subjects):
+            raise ValidationError(f"--subjects: expected training subjects among {subjects}, got {wanted}")
+        subjects = wanted
     if not subjects:
         raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS}, found none")
     stride = h36m.detect_stride(root, subjects[0])
-    # the dataset name is the one benchmarks.table1 gives this split, so that both share the saved labels
-    return (h36m.load_h36m(root, subjects, input="gt-ortho", stride=stride, source_fps=50.0),
-            f"h36m-{','.join(subjects)}-{stride}-gt-ortho")
+    seqs = h36m.load_h36m(root, subjects, input=args.input, stride=stride, source_fps=50.0)
+    seqs = [s.to_weak_perspective() if s.projection == "perspective" else s for s in seqs]
+    # the dataset name is the one benchmarks.table1 gives these labels, so that both share the saved cuts
+    return seqs, f"h36m-{stride}-{args.input}"
 
 
 def _params_from_strings(method: str, assignments: list[str]) -> dict:

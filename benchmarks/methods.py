@@ -171,11 +171,30 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
                          out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=split.labels_tag or split.tag,
                          jobs=ctx.jobs, progress=ctx.progress)
     s = labels.summary
-    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s, %.0f s", name,
+    s["label_mpjpe_mm"] = label_error(labels.labels, split.train_targets)
+    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
-             f"{s['label_mpjpe']:.4g}" if s["label_mpjpe"] is not None else "-", s["seconds"])
+             f"{s['label_mpjpe_mm']:.1f}" if s["label_mpjpe_mm"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
     return labels.labels, {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
+
+
+def label_error(labels: list[np.ndarray], truth: list) -> float | None:
+    """The PRN-protocol MPJPE of pseudo-labels as a network learns them (each labelled frame normalised by its own
+    xy norm, then scaled by the ground truth's: :func:`baselines.supervised.normalised_targets`), in the ground
+    truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
+    from baselines.supervised import normalised_targets
+    from nrsfm.metrics import mpjpe_prn_per_frame
+    from prn.data import denormalize
+
+    errors = []
+    for lab, seq in zip(labels, truth):
+        ok = np.isfinite(lab).all(axis=(1, 2))
+        if seq.points_3d is None or not ok.any():
+            continue
+        pred = denormalize(normalised_targets([lab[ok]]), seq.points_3d[ok])
+        errors.append(mpjpe_prn_per_frame(pred, seq.points_3d[ok]))
+    return float(np.concatenate(errors).mean()) if errors else None
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:

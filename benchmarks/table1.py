@@ -411,7 +411,7 @@ def _run(args: argparse.Namespace) -> int:
                                   "label MPJPE (mm)", "time in this run (s; cuts read back are not solved again)"],
                                  [[k, s["method"], ", ".join(f"{a}={b}" for a, b in s["params"].items()) or "defaults",
                                    s["cuts"], s["failed"], f"{s['labelled_frames']} of {s['frames']}",
-                                   s["label_mpjpe"], s["seconds"]] for k, s in labels]))
+                                   s.get("label_mpjpe_mm"), s["seconds"]] for k, s in labels]))
     if notice:
         md.insert(0, notice + "; the paper columns are Human3.6M numbers, shown for orientation only.\n")
     text = "\n".join(md)
