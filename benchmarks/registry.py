@@ -24,9 +24,11 @@ log = logging.getLogger(__name__)
 
 
 #: ``--quick``: the pseudo-labels' solvers with light settings, stated in each table's labels table: PR with one
-#: continuation stage of 100 iterations (a smoke run of the pipeline, not PR's accuracy), SPM's shape step by ADMM
-#: in place of cvxpy (the same labels to 0.01 mm on the synthetic humans, 16 times faster).
-QUICK_LABEL_PARAMS = {"pr": {"max_iter": 100, "stages": 1}, "spm": {"shape_solver": "admm"}}
+#: continuation stage of 100 iterations and EM-PND with 50 EM iterations (smoke runs of the pipeline, not their
+#: accuracy), SPM's shape step by ADMM in place of cvxpy (the same labels to 0.01 mm on the synthetic humans, 16
+#: times faster).
+QUICK_LABEL_PARAMS = {"pr": {"max_iter": 100, "stages": 1}, "spm": {"shape_solver": "admm"},
+                      "empnd": {"max_iter": 50}}
 
 
 @dataclass

@@ -78,6 +78,9 @@ PROTOCOL_TEXT = {
     "c3dpo": "C3DPO protocol (shapes centred on the hip, the better of the raw and the depth-flipped prediction per "
              "frame, no Procrustes; the mean per action, Avg the unweighted mean of the actions)"}
 INPUTS = ("gt-ortho", "gt-persp", "sh")
+#: The rows run by default: the paper's, the GT 3D bound, PR + NN and this toolbox's PRN-L (``--methods`` adds the
+#: other registered rows, e.g. ``EM-PND + NN``).
+ROWS = ("PRN w/o reg", "CSF2 + NN", "SPM + NN", "PR + NN", "C3DPO", "PRN-FCN", "PRN-FCN-W", "PRN-L", "GT 3D")
 #: C3DPO's learning rate in this table: of 1e-3 (the authors'), 3e-3, 1e-2 and 3e-2 the lowest error on the training
 #: subject S8 held out (``--validate S8``, the authors' hip-normalised inputs, 3,000 iterations of batch 256;
 #: ``benchmarks/RESULTS.md``), never on the test subjects.
@@ -230,7 +233,8 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--quick", action="store_true", help="a short schedule and small data: a smoke run")
     p.add_argument("--iterations", type=int, default=None,
                    help="training iterations (default: 70000 for h36m as the paper, 4000 synthetic, 300 quick)")
-    p.add_argument("--methods", default=None, help="comma-separated rows (default: all registered)")
+    p.add_argument("--methods", default=None, help=f"comma-separated rows (default: {', '.join(ROWS)}; any "
+                                                   "registered row)")
     p.add_argument("--out", default=None, help="output folder (default: runs/table1-<data>)")
     p.add_argument("--stride", default="auto", help="Human3.6M frame stride: 5 for 50 fps files, 1 for 10 fps "
                                                     "copies, auto to detect")
@@ -325,7 +329,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
         raise ValidationError(f"--iterations: expected a number of training iterations >= 1, got {args.iterations}")
     iterations = args.iterations or (300 if args.quick else 70_000 if args.data == "h36m" else 4000)
     registry = methods()
-    names = list(registry) if args.methods is None else [m.strip() for m in args.methods.split(",")]
+    names = list(ROWS) if args.methods is None else [m.strip() for m in args.methods.split(",")]
     for n in names:
         if n not in registry:
             raise ValidationError(f"--methods: expected names among {list(registry)}, got {n!r}")
