@@ -172,7 +172,8 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
                          jobs=ctx.jobs, progress=ctx.progress)
     s = labels.summary
     s["label_mpjpe_mm"] = label_error(labels.labels, split.train_targets)
-    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s mm, %.0f s", name,
+    log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s (the ground "
+             "truth's units: mm on Human3.6M), %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
              f"{s['label_mpjpe_mm']:.1f}" if s["label_mpjpe_mm"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
