@@ -181,21 +181,26 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
 
 
 def label_error(labels: list[np.ndarray], truth: list) -> float | None:
-    """The PRN-protocol MPJPE of pseudo-labels as a network learns them (each labelled frame normalised by its own
-    xy norm, then scaled by the ground truth's: :func:`baselines.supervised.normalised_targets`), in the ground
-    truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
-    from baselines.supervised import normalised_targets
-    from nrsfm.metrics import mpjpe_prn_per_frame
-    from prn.data import denormalize
-
+    """The PRN-protocol MPJPE of pseudo-labels as a network learns them (:func:`label_errors_per_frame`), in the
+    ground truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
     errors = []
     for lab, seq in zip(labels, truth):
         ok = np.isfinite(lab).all(axis=(1, 2))
         if seq.points_3d is None or not ok.any():
             continue
-        pred = denormalize(normalised_targets([lab[ok]]), seq.points_3d[ok])
-        errors.append(mpjpe_prn_per_frame(pred, seq.points_3d[ok]))
+        errors.append(label_errors_per_frame(lab[ok], seq.points_3d[ok]))
     return float(np.concatenate(errors).mean()) if errors else None
+
+
+def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """`(F,)` PRN-protocol MPJPE of `(F, P, 3)` pseudo-labels against `(F, P, 3)` ground truth as a network learns
+    them: each labelled frame normalised by its own xy norm (:func:`baselines.supervised.normalised_targets`), then
+    scaled by the ground truth's."""
+    from baselines.supervised import normalised_targets
+    from nrsfm.metrics import mpjpe_prn_per_frame
+    from prn.data import denormalize
+
+    return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:

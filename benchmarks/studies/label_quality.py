@@ -9,8 +9,7 @@ multiview_cuts`); every ``--every``-th cut is solved by each solver (``name`` or
 defaults otherwise), the cuts mirrored to one handedness without ground truth, and each solver's labels scored
 against the ground truth with the PRN protocol (MPJPE, mm, as the network learns them: each frame normalised by
 its own xy norm and scaled by the ground truth's). The cost is the mean solve time of a cut on one thread,
-extrapolated to every training cut of the five training subjects on 2 cores. No choice here reads the test
-subjects.
+extrapolated to every cut of ``--subjects`` on 2 cores. No choice here reads the test subjects.
 """
 
 from __future__ import annotations
@@ -23,10 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import markdown_table, run_metadata, run_table, write_json
-
-#: Cuts of the five training subjects (S1, S5-S8) at 10 fps, 17 joints: what "every training frame" costs.
-ALL_TRAINING_CUTS = 2920
-
 
 def parse_method(text: str) -> tuple[str, dict]:
     """``"pr:max_iter=200"`` -> ("pr", {"max_iter": 200}) with the solver's typed parameters."""
@@ -54,12 +49,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from baselines.labels import _MIRROR, _cache_folder, _cut_path, multiview_cuts, resolve_reflections, solve_cuts
-    from baselines.supervised import normalised_targets
+    from benchmarks.methods import label_errors_per_frame
     from nrsfm.datasets import find_dataset, h36m
     from nrsfm.errors import ValidationError
     from nrsfm.io import read_npz
-    from nrsfm.metrics import mpjpe_prn_per_frame
-    from prn.data import denormalize
 
     if args.every < 1:
         raise ValidationError(f"--every: expected an integer >= 1, got {args.every}")
@@ -74,7 +67,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.input == "sh" else seqs
     truth = {s.name: s for s in truth}
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in seqs]
-    cuts = multiview_cuts(tracks)[::args.every]
+    every_cut = multiview_cuts(tracks)
+    cuts = every_cut[::args.every]
     gt = [np.stack([truth[seqs[i].name].points_3d[t] for i, t in c.sources]) for c in cuts]  # (F, P, 3) mm
     rows, records = [], []
     for text in args.methods.split(","):
@@ -92,18 +86,18 @@ def _run(args: argparse.Namespace) -> int:
             if not np.isfinite(rec).all():
                 continue
             rec = rec * _MIRROR if flip else rec
-            errors.append(mpjpe_prn_per_frame(denormalize(normalised_targets([rec]), g), g))
+            errors.append(label_errors_per_frame(rec, g))
         err = float(np.concatenate(errors).mean()) if errors else None
         per_cut = float(np.mean(seconds))
         label = method + (":" + ";".join(f"{k}={v}" for k, v in params.items()) if params else "")
-        rows.append([label, len(cuts), len(failed), err, per_cut, per_cut * ALL_TRAINING_CUTS / 2 / 60])
+        rows.append([label, len(cuts), len(failed), err, per_cut, per_cut * len(every_cut) / 2 / 60])
         records.append({"solver": label, "cuts": len(cuts), "failed": len(failed), "label_mpjpe_mm": err,
                         "seconds_per_cut": per_cut, "wall_seconds": wall, "reused_cuts": reused,
-                        "minutes_all_cuts_2_cores": per_cut * ALL_TRAINING_CUTS / 2 / 60})
+                        "all_cuts": len(every_cut), "minutes_all_cuts_2_cores": per_cut * len(every_cut) / 2 / 60})
     text = (f"### Pseudo-labels on every {args.every}th training cut of {', '.join(subjects)} ({args.input}): "
             "label MPJPE (mm, PRN protocol as the network learns them) and cost\n\n"
             + markdown_table(["solver", "cuts", "failed", "label MPJPE (mm)", "s per cut (1 thread)",
-                              f"minutes for all {ALL_TRAINING_CUTS} training cuts on 2 cores"], rows))
+                              f"minutes for all {len(every_cut)} cuts of these subjects on 2 cores"], rows))
     print(text)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
