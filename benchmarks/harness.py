@@ -115,24 +115,24 @@ def by_band(errors: np.ndarray, labels: np.ndarray) -> dict[str, tuple[float, in
     return {str(b): (float(errors[labels == b].mean()), int((labels == b).sum())) for b in sorted(set(labels))}
 
 
-def solve_directly(split: Split, solver: str, jobs: int = 1) -> Predictions:
-    """``solver`` (an :mod:`nrsfm` registry name, at its defaults) on each test input sequence itself: its shapes
-    in the data's units (``millimetres``), and in PRN's per-frame units for the figures."""
+def solve_directly(split: Split, solver: str, jobs: int = 1, params: dict | None = None) -> Predictions:
+    """``solver`` (an :mod:`nrsfm` registry name, at its defaults but for ``params``) on each test input sequence
+    itself: its shapes in the data's units (``millimetres``), and in PRN's per-frame units for the figures."""
     from joblib import Parallel, delayed, parallel_config
 
     from prn.data import normalize_3d
 
     with parallel_config(backend="loky", n_jobs=min(jobs, len(split.test_inputs)), inner_max_num_threads=1):
-        recs = Parallel()(delayed(_solve)(seq, solver) for seq in split.test_inputs)
+        recs = Parallel()(delayed(_solve)(seq, solver, params or {}) for seq in split.test_inputs)
     out = Predictions(r / normalize_3d(t.points_3d)[1][:, None, None] for r, t in zip(recs, split.test_truth))
     out.millimetres = recs
     return out
 
 
-def _solve(seq, solver: str) -> np.ndarray:
+def _solve(seq, solver: str, params: dict) -> np.ndarray:
     import nrsfm
 
-    return nrsfm.solve(seq.replace(points_3d=None), solver).points_3d
+    return nrsfm.solve(seq.replace(points_3d=None), solver, **params).points_3d
 
 
 def parser(spec: TableSpec) -> argparse.ArgumentParser:
@@ -209,6 +209,8 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
         if getattr(args, option) is not None:
             context[option] = getattr(args, option)
     context.setdefault("c3dpo_batch", 128 if args.quick else 1024)
+    if args.quick:  # a smoke run: C3DPO as many iterations as the other rows
+        context["c3dpo_iterations"] = getattr(args, "c3dpo_iterations", None) or iterations
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
                      progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
                      c3dpo_lr=args.c3dpo_lr,
@@ -237,8 +239,10 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
             if name.endswith(DIRECT):
                 log.info("%s: solving the test data with %s ...", spec.name, name)
                 t0 = time.perf_counter()
-                predictions[key] = solve_directly(split, name.removesuffix(f" {DIRECT}"), ctx.jobs)
-                ctx.timings[f"{name} ({section or split.input_type})"] = {"seconds": time.perf_counter() - t0}
+                predictions[key] = solve_directly(split, solver := name.removesuffix(f" {DIRECT}"), ctx.jobs,
+                                                  ctx.label_params.get(solver))
+                ctx.timings[f"{name} ({section or split.input_type})"] = {
+                    "seconds": time.perf_counter() - t0, "params": ctx.label_params.get(solver, "defaults")}
             else:
                 m = registry[name]
                 if split.input_type not in m.inputs:

@@ -23,12 +23,12 @@ from nrsfm.sequence import Sequence
 log = logging.getLogger(__name__)
 
 
-#: ``--quick``: the pseudo-labels' solvers with light settings, stated in each table's labels table: PR with one
-#: continuation stage of 100 iterations and EM-PND with 50 EM iterations (smoke runs of the pipeline, not their
-#: accuracy), SPM's shape step by ADMM in place of cvxpy (the same labels to 0.01 mm on the synthetic humans, 16
-#: times faster).
-QUICK_LABEL_PARAMS = {"pr": {"max_iter": 100, "stages": 1}, "spm": {"shape_solver": "admm"},
-                      "empnd": {"max_iter": 50}}
+#: ``--quick``: the per-sequence solvers (pseudo-labels and the rows on the test data) with light settings, stated
+#: in each table's labels table and timings: PR with one continuation stage of 50 iterations and EM-PND with 20 EM
+#: iterations (smoke runs of the pipeline, not their accuracy), SPM's shape step by ADMM in place of cvxpy (the same
+#: labels to 0.01 mm on the synthetic humans, 16 times faster).
+QUICK_LABEL_PARAMS = {"pr": {"max_iter": 50, "stages": 1}, "spm": {"shape_solver": "admm"},
+                      "empnd": {"max_iter": 20}}
 
 
 @dataclass

@@ -337,6 +337,8 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
     out = Path(args.out or f"runs/table1-{args.data}{'-quick' if args.quick else ''}{held}")
     if args.c3dpo_batch is None:
         args.c3dpo_batch = 128 if args.quick else 1024
+    if args.quick and args.c3dpo_iterations is None:  # a smoke run: C3DPO as many iterations as the other rows
+        args.c3dpo_iterations = iterations
     if args.c3dpo_iterations is not None and args.c3dpo_iterations < 1:
         raise ValidationError(f"--c3dpo-iterations: expected >= 1, got {args.c3dpo_iterations}")
     if not args.c3dpo_lr > 0:

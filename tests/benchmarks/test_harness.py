@@ -99,6 +99,7 @@ def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, mo
     assert paper[("GT 3D", "c3dpo")] is None
     labels = data["meta"]["timings"]["CSF2 + NN (gt-ortho)"]["labels"]
     assert labels["cuts"] == 2 * 20 and labels["labelled_frames"] + 4 * labels["failed"] >= labels["frames"]
+    assert data["meta"]["timings"]["C3DPO (gt-ortho)"]["iterations"] == 12  # --quick: as many as the other rows
 
 
 def test_table1_missing_h36m_is_a_clear_error(tmp_path, capsys):
@@ -753,3 +754,17 @@ def test_csf2_shape_step_with_the_true_cameras_recovers_exact_tracks():
     assert e3d(shapes, seq.points_3d) < 1e-6
     wrong = csf2_model.shape_step_with_cameras(seq, seq.camera_rotations[::-1].copy(), 1)
     assert e3d(wrong, seq.points_3d) > 0.05
+
+
+def test_direct_rows_take_the_quick_settings_and_refuse_unknown_ones():
+    from benchmarks.harness import solve_directly
+    from benchmarks.registry import Split
+    from nrsfm.datasets.synthetic import lowrank_sequence
+    from nrsfm.errors import ValidationError
+
+    seq = lowrank_sequence(n_frames=20, n_points=12, n_basis=2, seed=0)
+    split = Split([seq], [seq], [seq], [seq], "gt-ortho")
+    out = solve_directly(split, "pr", params={"max_iter": 5, "stages": 1})
+    assert out.millimetres[0].shape == (20, 12, 3) and np.isfinite(out.millimetres[0]).all()
+    with pytest.raises(ValidationError, match="max_iterations"):
+        solve_directly(split, "pr", params={"max_iterations": 5})
