@@ -1,7 +1,7 @@
 """A trained C3DPO's 3D error on its own training data beside its test error.
 
     python -m benchmarks.studies.c3dpo_fit MODEL [--root DIR] [--input gt-ortho|gt-persp] [--fraction 0.17]
-                                           [--c3dpo-inputs hip|centred|prn] [--seed 0] [--out DIR]
+                                           [--c3dpo-inputs hip|centred|prn] [--subjects S8,S9] [--seed 0] [--out DIR]
 
 MODEL is a ``model.pt`` that ``benchmarks.table1`` trained (under ``<out>/cache/C3DPO-*/``). The keypoints are
 prepared as the harness prepares them for C3DPO (:func:`benchmarks.methods.c3dpo_inputs`; ``--c3dpo-inputs`` as
@@ -11,6 +11,9 @@ sees 3D, so a training error as high as the test error says the model's objectiv
 training data: the error is not over-fitting. Beside each, the mean distance between the image coordinates of
 the model's camera-frame shapes and the input keypoints (the table takes the input's and only the shapes' depth),
 and below, how well a linear basis of the model's size fits the training share's ground truth at best.
+``--subjects`` scores the model on each named subject alone as well, in PRN's protocol and C3DPO's
+(:func:`benchmarks.table1.evaluate_c3dpo`): a model trained with a subject held out (``--validate``) is scored on
+the held-out subject and on the test subject, a model trained on every training subject on each of them.
 """
 
 from __future__ import annotations
@@ -78,6 +81,26 @@ def basis_floor(shapes: np.ndarray, basis: int, rounds: int = 5) -> tuple[float,
     return float(np.linalg.norm(fitted - x, axis=2).mean()), float(np.linalg.norm((fitted - x)[..., :2], axis=2).mean())
 
 
+def subject_rows(model, root, subjects: list[str], input_type: str, stride: int, unit: float, inputs: str
+                 ) -> list[list]:
+    """For each subject: its name, ``model``'s MPJPE (mm) in PRN's protocol and in C3DPO's, and its frame count."""
+    from benchmarks.methods import c3dpo_test_predictions
+    from benchmarks.registry import Split
+    from benchmarks.table1 import evaluate_c3dpo
+    from nrsfm.datasets import h36m
+
+    missing = [s for s in subjects if not (root / s).is_dir()]
+    if missing:
+        raise ValidationError(f"--subjects: expected subjects under {root}, missing {missing}")
+    rows = []
+    for subject in subjects:
+        seqs = h36m.load_h36m(root, [subject], input=input_type, stride=stride, source_fps=50.0)
+        prn, frames = mpjpe_of(model, seqs, unit, inputs)
+        preds = c3dpo_test_predictions(model, Split([], [], seqs, seqs, input_type), unit, inputs)
+        rows.append([subject, prn, evaluate_c3dpo(preds, seqs)["Avg"][0], frames])
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     from baselines.c3dpo import load_c3dpo
     from benchmarks.methods import c3dpo_unit
@@ -91,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--c3dpo-inputs", default="hip", choices=C3DPO_INPUTS,
                    help="as --c3dpo-inputs of benchmarks.table1 when the model was trained")
     p.add_argument("--stride", type=int, default=1, help="Human3.6M frame stride (5 for the public 50 fps files)")
+    p.add_argument("--subjects", default="", help="comma-separated subjects scored one by one (e.g. S8,S9)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/c3dpo_fit")
     args = p.parse_args(argv)
@@ -115,12 +139,18 @@ def main(argv: list[str] | None = None) -> int:
                 for name, seqs in (("training (a random share)", chosen), ("test", test))]
         print(markdown_table(["sequences", "MPJPE (mm, PRN protocol)", "frames",
                               "the shapes' 2D reprojection error (mm)"], rows))
+        by_subject = subject_rows(model, root, [s.strip() for s in args.subjects.split(",") if s.strip()],
+                                  args.input, args.stride, unit, args.c3dpo_inputs)
+        if by_subject:
+            print("\n" + markdown_table(["subject", "MPJPE (mm, PRN protocol)", "MPJPE (mm, C3DPO protocol)",
+                                         "frames"], by_subject))
         floor = basis_floor(np.concatenate([s.points_3d for s in chosen]), model.config.basis)
         print(f"\nA {model.config.basis}-shape basis fitted to the ground truth of the training share (each shape "
               f"rotated onto the mean shape): 3D error {floor[0]:.1f} mm, its image coordinates {floor[1]:.1f} mm")
         write_json(Path(args.out) / "c3dpo_fit.json", {"meta": run_metadata(model=str(args.model), input=args.input,
                                                                           fraction=args.fraction, seed=args.seed),
-                                                        "results": rows, "basis_floor_mm": {"3d": floor[0],
+                                                        "results": rows, "subjects": by_subject,
+                                                        "basis_floor_mm": {"3d": floor[0],
                                                                                             "xy": floor[1]}})
         return 0
 

@@ -623,6 +623,34 @@ def test_c3dpo_fit_scores_a_model_as_the_harness_does(tmp_path, capsys):
     assert "no such model file" in capsys.readouterr().err
 
 
+def test_c3dpo_fit_scores_each_named_subject_in_both_protocols(tmp_path, monkeypatch):
+    from baselines.c3dpo import load_c3dpo
+    from benchmarks.methods import c3dpo, c3dpo_unit
+    from benchmarks.registry import RunContext, Split
+    from benchmarks.studies import c3dpo_fit
+    from benchmarks.table1 import evaluate, evaluate_c3dpo
+    from nrsfm.datasets import h36m
+    from nrsfm.datasets.synthetic import human_sequences
+    from nrsfm.errors import ValidationError
+
+    seqs = human_sequences(["S1", "S9"], n_frames=20, takes=1, seed=0, motions=("walking",))
+    train, test = ([s for s in seqs if s.meta["subject"] == subject] for subject in ("S1", "S9"))
+    split = Split(train, train, test, test, "gt-ortho", tag="tiny-subjects")
+    ctx = RunContext(out_dir=tmp_path, iterations=12, progress=False, c3dpo_batch=16, c3dpo_inputs="centred")
+    pred = c3dpo(split, ctx)
+    model = load_c3dpo(next((tmp_path / "cache").glob("C3DPO-*/model.pt")), "cpu")
+    (tmp_path / "S9").mkdir()
+    monkeypatch.setattr(h36m, "load_h36m", lambda root, subjects, **kw: [s for s in seqs if s.meta["subject"]
+                                                                        in subjects])
+    unit = c3dpo_unit(train, "centred")
+    [(name, prn, c3, frames)] = c3dpo_fit.subject_rows(model, tmp_path, ["S9"], "gt-ortho", 1, unit, "centred")
+    assert (name, frames) == ("S9", sum(s.n_frames for s in test))
+    assert prn == pytest.approx(evaluate(pred, test)["Avg"][0], rel=1e-6)
+    assert c3 == pytest.approx(evaluate_c3dpo(pred, test)["Avg"][0], rel=1e-6)
+    with pytest.raises(ValidationError, match="S11"):
+        c3dpo_fit.subject_rows(model, tmp_path, ["S11"], "gt-ortho", 1, unit, "centred")
+
+
 def test_checkpoint_progress_reads_where_a_training_got_to(tmp_path):
     import torch
 
