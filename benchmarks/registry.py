@@ -124,7 +124,7 @@ class RunContext:
     label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels
     label_solver: str = "pr"  # PRN-L: the solver of its pseudo-labels
     label_weight: float = 1.0  # PRN-L: the labels' weight beside the PR loss (prn.train.TrainConfig.label_weight)
-    label_decay: str = "linear"  # PRN-L: "linear" (to 0 at the end of training) or "none"
+    label_decay: str = "none"  # PRN-L: "none" (chosen on S8 held out) or "linear" (to 0 at the end of training)
     network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
     labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")
     timings: dict = field(default_factory=dict)

@@ -278,8 +278,8 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                    help=f"PRN-L: the pseudo-labels' weight beside the PR loss (default {RunContext.label_weight:g}, "
                         "chosen on S8 held out; benchmarks/RESULTS.md)")
     p.add_argument("--label-decay", choices=["linear", "none"], default=RunContext.label_decay,
-                   help=f"PRN-L: the weight falls linearly to 0 by the last iteration, or stays (default "
-                        f"{RunContext.label_decay})")
+                   help=f"PRN-L: the weight stays, or falls linearly to 0 by the last iteration (default "
+                        f"{RunContext.label_decay}, chosen on S8 held out)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
