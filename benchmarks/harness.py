@@ -209,8 +209,8 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
         if getattr(args, option) is not None:
             context[option] = getattr(args, option)
     context.setdefault("c3dpo_batch", 128 if args.quick else 1024)
-    if args.quick:  # a smoke run: C3DPO as many iterations as the other rows
-        context["c3dpo_iterations"] = getattr(args, "c3dpo_iterations", None) or iterations
+    if args.quick:  # a smoke run: C3DPO as many iterations as the other rows, unless given
+        context["c3dpo_iterations"] = args.c3dpo_iterations or iterations
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,
                      progress=not args.no_progress, device=args.device, retrain=args.retrain, jobs=args.jobs,
                      c3dpo_lr=args.c3dpo_lr,
@@ -239,10 +239,10 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
             if name.endswith(DIRECT):
                 log.info("%s: solving the test data with %s ...", spec.name, name)
                 t0 = time.perf_counter()
-                predictions[key] = solve_directly(split, solver := name.removesuffix(f" {DIRECT}"), ctx.jobs,
-                                                  ctx.label_params.get(solver))
+                params = ctx.label_params.get(name.removesuffix(f" {DIRECT}"))
+                predictions[key] = solve_directly(split, name.removesuffix(f" {DIRECT}"), ctx.jobs, params)
                 ctx.timings[f"{name} ({section or split.input_type})"] = {
-                    "seconds": time.perf_counter() - t0, "params": ctx.label_params.get(solver, "defaults")}
+                    "seconds": time.perf_counter() - t0, "params": params or "defaults"}
             else:
                 m = registry[name]
                 if split.input_type not in m.inputs:

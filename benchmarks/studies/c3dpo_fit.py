@@ -86,7 +86,7 @@ def subject_rows(model, root, subjects: list[str], input_type: str, stride: int,
     """For each subject: its name, ``model``'s MPJPE (mm) in PRN's protocol and in C3DPO's, and its frame count."""
     from benchmarks.methods import c3dpo_test_predictions
     from benchmarks.registry import Split
-    from benchmarks.table1 import evaluate_c3dpo
+    from benchmarks.table1 import evaluate, evaluate_c3dpo
     from nrsfm.datasets import h36m
 
     missing = [s for s in subjects if not (root / s).is_dir()]
@@ -95,8 +95,8 @@ def subject_rows(model, root, subjects: list[str], input_type: str, stride: int,
     rows = []
     for subject in subjects:
         seqs = h36m.load_h36m(root, [subject], input=input_type, stride=stride, source_fps=50.0)
-        prn, frames = mpjpe_of(model, seqs, unit, inputs)
         preds = c3dpo_test_predictions(model, Split([], [], seqs, seqs, input_type), unit, inputs)
+        prn, frames = evaluate(preds, seqs)["Avg"]
         rows.append([subject, prn, evaluate_c3dpo(preds, seqs)["Avg"][0], frames])
     return rows
 
