@@ -1,9 +1,13 @@
-"""Every paper table, one after the other, with one progress display and one summary.
+"""Every paper table, with one progress display and one summary.
 
     python -m benchmarks.all [--quick] [--root DIR] [--out DIR] [--tables table1,table2,table_s1,table3,...]
                              [--jobs N] [--device auto|cpu|cuda]
 
-Each table runs as ``python -m benchmarks.<table>`` would, writing its own folder under ``--out``
+With ``--jobs N`` (default 2) the tables run N side by side, each as its own ``python -m benchmarks.<table>``
+process with one torch / BLAS thread (its printed table in ``<table>/output.txt``, its messages in
+``<table>/stderr.txt``); one thread per table does more work per core than one table on two threads. With
+``--jobs 1`` or a single table they run one after the other in this process. Each table writes its own folder
+under ``--out``
 (``runs/all[-quick]`` by default) with its Markdown, CSV, JSON and figures; trained models and pseudo-labels are
 cached there (the pseudo-labels in one folder that every table shares), so an interrupted run resumes where it
 stopped. Every table reads the real data it finds under ``--root`` (default ``$NRSFM_DATA``): Human3.6M ``h36m/``
@@ -23,8 +27,11 @@ import importlib
 import io
 import json
 import logging
+import os
+import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from benchmarks.common import markdown_table, run_metadata, write_json
@@ -76,6 +83,27 @@ def _argv(name: str, args: argparse.Namespace, real: bool, out: Path) -> list[st
     return argv
 
 
+def _command(name: str, argv: list[str]) -> list[str]:
+    """The command line that runs table ``name`` as its own process."""
+    return [sys.executable, "-m", f"benchmarks.{name}", *argv]
+
+
+#: Thread counts of a table run side by side with others: one thread for torch and every BLAS.
+ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+
+
+def _run_process(name: str, argv: list[str]) -> tuple[int, float]:
+    """Run table ``name`` in its own one-thread process; its stdout and stderr go to files in its folder.
+
+    Returns (exit status, wall seconds)."""
+    folder = Path(argv[argv.index("--out") + 1])
+    folder.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    with open(folder / "output.txt", "w") as stdout, open(folder / "stderr.txt", "w") as stderr:
+        rc = subprocess.call(_command(name, argv), stdout=stdout, stderr=stderr, env={**os.environ, **ONE_THREAD})
+    return rc, time.perf_counter() - t
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.all", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="every table's short schedule on small data")
@@ -83,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
                                   "embedded stand-in)")
     p.add_argument("--out", default=None, help="output folder (default: runs/all[-quick])")
     p.add_argument("--tables", default=",".join(TABLES), help=f"comma-separated among {list(TABLES)}")
-    p.add_argument("--jobs", type=int, default=2, help="parallel pseudo-label solves")
+    p.add_argument("--jobs", type=int, default=2, help="tables side by side, one thread each (and parallel "
+                                                        "pseudo-label solves within a table)")
     p.add_argument("--device", default="auto")
     args = p.parse_args(argv)
     from nrsfm.datasets import data_root
@@ -100,25 +129,46 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.out or f"runs/all{'-quick' if args.quick else ''}")
     t0 = time.perf_counter()
-    summary, failures = [], {}
-    bar = tqdm(names, desc="tables", unit="table")
-    for name in bar:
+    if args.jobs < 1:
+        print(f"all: error: --jobs: expected a positive count, got {args.jobs}", file=sys.stderr)
+        return 2
+    side_by_side = args.jobs > 1 and len(names) > 1
+    done: dict[str, dict] = {}
+    bar = tqdm(total=len(names), desc="tables", unit="table")
+
+    def finish(name: str, real: bool, rc: int, seconds: float) -> None:
+        entry = {"table": name, "data": "real" if real else "stand-in", "seconds": seconds, "rc": rc, "rows": []}
+        if rc == 0:
+            entry["rows"] = _rows(name, out / name)
+            entry["prn_beats_no_reg"] = _prn_beats_no_reg(entry["rows"])
+        done[name] = entry
         bar.set_postfix_str(name)
-        real = has_data(name, args.root)
-        folder = out / name
-        t = time.perf_counter()
-        printed = io.StringIO()
-        with contextlib.redirect_stdout(printed):
-            rc = importlib.import_module(f"benchmarks.{name}").main(_argv(name, args, real, folder))
-        seconds = time.perf_counter() - t
-        if rc != 0:
-            failures[name] = rc
-            summary.append({"table": name, "data": "real" if real else "stand-in", "seconds": seconds, "rc": rc,
-                            "rows": []})
-            continue
-        rows = _rows(name, folder)
-        summary.append({"table": name, "data": "real" if real else "stand-in", "seconds": seconds, "rc": 0,
-                        "rows": rows, "prn_beats_no_reg": _prn_beats_no_reg(rows)})
+        bar.update()
+
+    if side_by_side:
+        with ThreadPoolExecutor(args.jobs) as pool:
+            futures = {}
+            for name in names:
+                real = has_data(name, args.root)
+                futures[pool.submit(_run_process, name, _argv(name, args, real, out / name))] = (name, real)
+            for f in as_completed(futures):
+                name, real = futures[f]
+                rc, seconds = f.result()
+                if rc != 0:
+                    print(f"all: {name} exited {rc}; its messages are in {out / name / 'stderr.txt'}",
+                          file=sys.stderr)
+                finish(name, real, rc, seconds)
+    else:
+        for name in names:
+            real = has_data(name, args.root)
+            t = time.perf_counter()
+            printed = io.StringIO()
+            with contextlib.redirect_stdout(printed):
+                rc = importlib.import_module(f"benchmarks.{name}").main(_argv(name, args, real, out / name))
+            finish(name, real, rc, time.perf_counter() - t)
+    bar.close()
+    summary = [done[name] for name in names]
+    failures = {s["table"]: s["rc"] for s in summary if s["rc"] != 0}
     total = time.perf_counter() - t0
     text = [f"## All tables{' (--quick)' if args.quick else ''}: {total:.0f} s\n"]
     for s in summary:

@@ -4,6 +4,7 @@ Table 3 (faces), Table 4 (dense bodies)."""
 import argparse
 import dataclasses
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -255,6 +256,34 @@ def test_all_runs_the_chosen_tables_and_summarises(tmp_path, capsys, monkeypatch
     text = (tmp_path / "o" / "summary.md").read_text()
     assert "PRN beats PRN w/o reg: yes" in text and "| PRN-FCN | 0.2000 |" in text
     assert all_tables.main(["--tables", "nope"]) == 2
+
+
+def test_all_runs_tables_side_by_side_in_one_thread_processes(tmp_path, monkeypatch):
+    from benchmarks import all as all_tables
+
+    script = """
+import json, os, sys
+from pathlib import Path
+argv = sys.argv[1:]
+name, out = argv[0], Path(argv[argv.index("--out") + 1])
+out.mkdir(parents=True, exist_ok=True)
+print("printed by", name)
+if name == "table4":
+    sys.exit(3)
+error = 0.2 if os.environ["OMP_NUM_THREADS"] == "1" else 9.0  # a table must run on one thread
+(out / (name + ".json")).write_text(json.dumps({"results": [
+    {"section": "", "method": "PRN-FCN", "error": error, "frames": 9, "paper": None},
+    {"section": "", "method": "PRN w/o reg", "error": 0.4, "frames": 9, "paper": None}]}))
+"""
+    monkeypatch.setattr(all_tables, "_command", lambda name, argv: [sys.executable, "-c", script, name, *argv])
+    out = tmp_path / "o"
+    assert all_tables.main(["--quick", "--tables", "table3,table_s2,table4", "--jobs", "2", "--out", str(out)]) == 1
+    text = (out / "summary.md").read_text()
+    assert text.index("### table3") < text.index("### table_s2") < text.index("### table4")  # in the asked order
+    assert text.count("| PRN-FCN | 0.2000 |") == 2 and "PRN beats PRN w/o reg: yes" in text
+    assert "table4 (stand-in" in text and "exit 3" in text
+    assert (out / "table3" / "output.txt").read_text() == "printed by table3\n"
+    assert all_tables.main(["--tables", "table3", "--jobs", "0"]) == 2
 
 
 @pytest.mark.parametrize("argv, message", [(["--c3dpo-lr", "0"], "--c3dpo-lr"),
