@@ -254,6 +254,9 @@ def run(spec: TableSpec, args: argparse.Namespace) -> int:
                 except NotRun as why:
                     not_run[key] = str(why)
                     continue
+                finally:
+                    if section and f"{name} ({split.input_type})" in ctx.timings:  # one entry per section
+                        ctx.timings[f"{name} ({section})"] = ctx.timings.pop(f"{name} ({split.input_type})")
             errors = per_frame(predictions[key], split.test_truth, spec.error)
             results[key] = (float(errors.mean()), int(len(errors)))
             if labels is not None:

@@ -143,6 +143,8 @@ def test_table3_reads_aflw2000_in_two_sections_with_yaw_bands(tmp_path, capsys, 
     assert sum(b["frames"] for b in first["bands"].values()) == 10 and set(first["bands"]) <= {"0-30", "30-60",
                                                                                                 "60-90"}
     assert data["meta"]["data"]["first_test_face"] == 30
+    timings = data["meta"]["timings"]  # one entry per row and section, none overwritten by the other section
+    assert {"PRN-FCN (fitted)", "PRN-FCN (reannotated)", "C3DPO (fitted)", "C3DPO (reannotated)"} <= set(timings)
     # --validate: the first 80% of the 30 training faces train, the other 6 validate; no paper numbers
     assert table3.main(["--iterations", "6", "--methods", "GT 3D", "--direct", "", "--validate", "--out",
                         str(out), "--no-progress"]) == 0
