@@ -86,15 +86,16 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)
         info = json.loads((cache / "train.json").read_text())
-        ctx.timings[f"{name} ({split.input_type})"] = {"cached": True, "train_seconds": info["seconds"],
-                                                       "iterations": info["iterations_run"], "cache": str(cache)}
+        ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(  # beside the labels' summary
+            {"cached": True, "train_seconds": info["seconds"], "iterations": info["iterations_run"],
+             "cache": str(cache)})
     else:
         res = train(data, config, cache, resume=not ctx.retrain, progress=ctx.progress,
                     labels=None if labels is None else labels[0])
         model = res.model
-        ctx.timings[f"{name} ({split.input_type})"] = {
-            "cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
-            "iterations_per_second": res.iterations_per_second, "cache": str(cache)}
+        ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
+            {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
+             "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
     return _predict(model, data, split, ctx)
 
 
@@ -229,7 +230,9 @@ def spm_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _plus_nn(split, ctx, "SPM + NN", "spm")
 
 
-@register_method("PR + NN", ("gt-ortho",), "PRN-FCN's network on PR's pseudo-3D labels (supervised)")
+@register_method("PR + NN", ("gt-ortho", "gt-persp", "sh"),
+                 "PRN-FCN's network on PR's pseudo-3D labels (supervised; on every input, beside PRN-L, which "
+                 "reads the same labels)")
 def pr_nn(split: Split, ctx: RunContext) -> list[np.ndarray]:
     return _plus_nn(split, ctx, "PR + NN", "pr")
 
