@@ -309,14 +309,16 @@ LABEL_DEFAULTS = {"csf2": {"k_rule": "rank"}, "spm": {"k_rule": "energy"}, "pr":
 
 def make_labels(sequences: list[Sequence], method: str, params: dict | None = None, *,
                 out_dir: str | os.PathLike, dataset: str, gap: int = 5, jobs: int = 1, backend: str = "loky",
-                scheduler: str | None = None, progress: bool = True, rerun: bool = False) -> LabelSet:
+                scheduler: str | None = None, progress: bool = True, rerun: bool = False,
+                truth: list[Sequence] | None = None) -> LabelSet:
     """Pseudo-labels for every frame of the orthographic training ``sequences``: cut (:func:`multiview_cuts`),
     solve (:func:`solve_cuts`), mirror to one handedness (:func:`resolve_reflections`), scatter back.
 
-    ``dataset`` names the data in the cache key (use a different name for different data).
+    ``dataset`` names the data in the cache key (use a different name for different data). ``truth``: sequences
+    frame for frame with ``sequences`` whose ``points_3d`` score the labels (``label_mpjpe``, :func:`label_error`, in
+    their units); default ``sequences`` themselves. Pass the original ones where ``sequences`` are weak-perspective
+    conversions, whose ground truth is divided by each frame's depth.
     """
-    from nrsfm.metrics import mpjpe_prn_per_frame
-
     if any(s.projection != "orthographic" for s in sequences):
         raise ValidationError("make_labels: expected orthographic tracks (the paper's +NN baselines use the "
                               "GT-ortho input); convert perspective tracks with seq.to_weak_perspective() first")
@@ -331,15 +333,36 @@ def make_labels(sequences: list[Sequence], method: str, params: dict | None = No
         rec = rec * _MIRROR if flip else rec
         for (i, t), shape in zip(cut.sources, rec):
             labels[i][t] = shape
-    errors = [mpjpe_prn_per_frame(lab[ok], seq.points_3d[ok]) for lab, seq in zip(labels, sequences)
-              if seq.points_3d is not None and (ok := np.isfinite(lab).all(axis=(1, 2))).any()]
     frames = int(sum(s.n_frames for s in sequences))
     labelled = int(sum(np.isfinite(lab).all(axis=(1, 2)).sum() for lab in labels))
     summary = {"method": method, "params": dict(params or {}), "dataset": dataset, "gap": gap, "cuts": len(cuts),
                "failed": len(failed), "reused": reused, "frames": frames, "labelled_frames": labelled,
                "mirrored": int(flips.sum()), "seconds": time.perf_counter() - t0, "jobs": jobs, "backend": backend,
-               "label_mpjpe": float(np.concatenate(errors).mean()) if errors else None}
+               "label_mpjpe": label_error(labels, sequences if truth is None else truth)}
     return LabelSet(labels, summary, failed)
+
+
+def label_error(labels: list[np.ndarray], truth: list) -> float | None:
+    """The PRN-protocol MPJPE of pseudo-labels as a network learns them (:func:`label_errors_per_frame`), in the
+    ground truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
+    errors = []
+    for lab, seq in zip(labels, truth):
+        ok = np.isfinite(lab).all(axis=(1, 2))
+        if seq.points_3d is None or not ok.any():
+            continue
+        errors.append(label_errors_per_frame(lab[ok], seq.points_3d[ok]))
+    return float(np.concatenate(errors).mean()) if errors else None
+
+
+def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """`(F,)` PRN-protocol MPJPE of `(F, P, 3)` pseudo-labels against `(F, P, 3)` ground truth as a network learns
+    them: each labelled frame normalised by its own xy norm (:func:`baselines.supervised.normalised_targets`), then
+    scaled by the ground truth's."""
+    from baselines.supervised import normalised_targets
+    from nrsfm.metrics import mpjpe_prn_per_frame
+    from prn.data import denormalize
+
+    return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -365,10 +388,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
     try:
         params = _params_from_strings(args.method, args.set)
-        sequences, dataset = _training_sequences(args)
+        truth, dataset = _training_sequences(args)
+        sequences = [s.to_weak_perspective() if s.projection == "perspective" else s for s in truth]
         result = make_labels(sequences, args.method, params, out_dir=args.out, dataset=dataset, gap=args.gap,
                              jobs=args.jobs, backend=args.backend, scheduler=args.scheduler,
-                             progress=not args.no_progress, rerun=args.rerun)
+                             progress=not args.no_progress, rerun=args.rerun, truth=truth)
     except (NRSfMError, FileNotFoundError, ValueError) as exc:
         print(f"labels: error: {exc}", file=sys.stderr)
         return 2
@@ -386,7 +410,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _training_sequences(args: argparse.Namespace) -> tuple[list[Sequence], str]:
-    """The orthographic training sequences (GT-ortho) of the chosen data, and the dataset's cache name."""
+    """The training sequences of the chosen data and input (perspective ones as loaded, with their ground truth in
+    millimetres), and the dataset's cache name."""
     from nrsfm.datasets import find_dataset, h36m
 
     # an explicit --root means Human3.6M, as in the benchmark tables: a wrong folder is an error, not the stand-in
@@ -406,7 +431,6 @@ def _training_sequences(args: argparse.Namespace) -> tuple[list[Sequence], str]:
         raise ValidationError(f"{root}: expected training subjects {h36m.TRAIN_SUBJECTS}, found none")
     stride = h36m.detect_stride(root, subjects[0])
     seqs = h36m.load_h36m(root, subjects, input=args.input, stride=stride, source_fps=50.0)
-    seqs = [s.to_weak_perspective() if s.projection == "perspective" else s for s in seqs]
     # the dataset name is the one benchmarks.table1 gives these labels, so that both share the saved cuts
     return seqs, f"h36m-{stride}-{args.input}"
 

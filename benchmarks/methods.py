@@ -170,38 +170,15 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in split.train_inputs]
     labels = make_labels(tracks, solver, ctx.label_params.get(solver),
                          out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=split.labels_tag or split.tag,
-                         jobs=ctx.jobs, progress=ctx.progress)
+                         jobs=ctx.jobs, progress=ctx.progress, truth=split.train_targets)
     s = labels.summary
-    s["label_mpjpe_mm"] = label_error(labels.labels, split.train_targets)
+    s["label_mpjpe_mm"] = s["label_mpjpe"]
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s (the ground "
              "truth's units: mm on Human3.6M), %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
              f"{s['label_mpjpe_mm']:.1f}" if s["label_mpjpe_mm"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
     return labels.labels, {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
-
-
-def label_error(labels: list[np.ndarray], truth: list) -> float | None:
-    """The PRN-protocol MPJPE of pseudo-labels as a network learns them (:func:`label_errors_per_frame`), in the
-    ground truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
-    errors = []
-    for lab, seq in zip(labels, truth):
-        ok = np.isfinite(lab).all(axis=(1, 2))
-        if seq.points_3d is None or not ok.any():
-            continue
-        errors.append(label_errors_per_frame(lab[ok], seq.points_3d[ok]))
-    return float(np.concatenate(errors).mean()) if errors else None
-
-
-def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """`(F,)` PRN-protocol MPJPE of `(F, P, 3)` pseudo-labels against `(F, P, 3)` ground truth as a network learns
-    them: each labelled frame normalised by its own xy norm (:func:`baselines.supervised.normalised_targets`), then
-    scaled by the ground truth's."""
-    from baselines.supervised import normalised_targets
-    from nrsfm.metrics import mpjpe_prn_per_frame
-    from prn.data import denormalize
-
-    return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:

@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from baselines.labels import _MIRROR, _cache_folder, _cut_path, multiview_cuts, resolve_reflections, solve_cuts
-    from benchmarks.methods import label_errors_per_frame
+    from baselines.labels import label_errors_per_frame
     from nrsfm.datasets import find_dataset, h36m
     from nrsfm.errors import ValidationError
     from nrsfm.io import read_npz
