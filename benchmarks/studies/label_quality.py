@@ -2,7 +2,8 @@
 label solver.
 
     python -m benchmarks.studies.label_quality [--root DIR] [--methods pr:max_iter=200,pr,empnd,consensus]
-                                               [--subjects S1] [--every 10] [--input gt-ortho] [--jobs 2] [--out DIR]
+                                               [--subjects S1] [--every 10] [--input gt-ortho] [--unit-frames]
+                                               [--jobs 2] [--out DIR]
 
 The training recordings of ``--subjects`` are cut as the "+NN" rows cut them (:func:`baselines.labels.
 multiview_cuts`); every ``--every``-th cut is solved by each solver (``name`` or ``name:param=value``, at its
@@ -10,6 +11,9 @@ defaults otherwise), the cuts mirrored to one handedness without ground truth, a
 against the ground truth with the PRN protocol (MPJPE, mm, as the network learns them: each frame normalised by
 its own xy norm and scaled by the ground truth's). The cost is the mean solve time of a cut on one thread,
 extrapolated to every cut of ``--subjects`` on 2 cores. No choice here reads the test subjects.
+
+``--unit-frames`` centres each frame's 2D and divides it by its xy norm before the solve: weak-perspective tracks
+(GT-persp, SH) change scale with each frame's depth and camera, which an orthographic solver reads as deformation.
 """
 
 from __future__ import annotations
@@ -33,6 +37,18 @@ def parse_method(text: str) -> tuple[str, dict]:
     return name, {a.split("=", 1)[0]: getattr(params, a.split("=", 1)[0]) for a in assignments}
 
 
+def unit_frames(seq):
+    """``seq`` with each frame's 2D centred on its visible points and divided by their xy norm."""
+    import dataclasses
+
+    vis = seq.visibility if seq.visibility is not None else np.ones(seq.points_2d.shape[:2], bool)
+    w = vis[..., None].astype(float)
+    centre = (seq.points_2d * w).sum(axis=1, keepdims=True) / np.maximum(w.sum(axis=1, keepdims=True), 1)
+    x = (seq.points_2d - centre) * w
+    norm = np.linalg.norm(x.reshape(len(x), -1), axis=1)
+    return dataclasses.replace(seq, points_2d=(seq.points_2d - centre) / np.where(norm > 0, norm, 1)[:, None, None])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.studies.label_quality", description=__doc__.split("\n\n")[0])
     p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
@@ -41,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--subjects", default="S1", help="training subjects whose cuts are sampled (default S1)")
     p.add_argument("--every", type=int, default=10, help="solve every N-th cut (default 10)")
     p.add_argument("--input", choices=["gt-ortho", "gt-persp", "sh"], default="gt-ortho")
+    p.add_argument("--unit-frames", action="store_true",
+                   help="centre each frame's 2D and scale it to a unit xy norm before solving")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", default="runs/label_quality")
     p.add_argument("--no-progress", action="store_true")
@@ -67,6 +85,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.input == "sh" else seqs
     truth = {s.name: s for s in truth}
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in seqs]
+    if args.unit_frames:
+        tracks = [unit_frames(s) for s in tracks]
     every_cut = multiview_cuts(tracks)
     cuts = every_cut[::args.every]
     gt = [np.stack([truth[seqs[i].name].points_3d[t] for i, t in c.sources]) for c in cuts]  # (F, P, 3) mm
@@ -74,7 +94,7 @@ def _run(args: argparse.Namespace) -> int:
     for text in args.methods.split(","):
         method, params = parse_method(text.strip())
         t0 = time.perf_counter()
-        dataset = f"h36m-{stride}-{args.input}"
+        dataset = f"h36m-{stride}-{args.input}" + ("-unit-frames" if args.unit_frames else "")
         shapes, failed, reused = solve_cuts(cuts, method, params, out_dir=Path(args.out) / "cuts", dataset=dataset,
                                             jobs=args.jobs, progress=not args.no_progress)
         wall = time.perf_counter() - t0
@@ -94,7 +114,8 @@ def _run(args: argparse.Namespace) -> int:
         records.append({"solver": label, "cuts": len(cuts), "failed": len(failed), "label_mpjpe_mm": err,
                         "seconds_per_cut": per_cut, "wall_seconds": wall, "reused_cuts": reused,
                         "all_cuts": len(every_cut), "minutes_all_cuts_2_cores": per_cut * len(every_cut) / 2 / 60})
-    text = (f"### Pseudo-labels on every {args.every}th training cut of {', '.join(subjects)} ({args.input}): "
+    text = (f"### Pseudo-labels on every {args.every}th training cut of {', '.join(subjects)} ({args.input}"
+            + (", each frame scaled to a unit xy norm" if args.unit_frames else "") + "): "
             "label MPJPE (mm, PRN protocol as the network learns them) and cost\n\n"
             + markdown_table(["solver", "cuts", "failed", "label MPJPE (mm)", "s per cut (1 thread)",
                               f"minutes for all {len(every_cut)} cuts of these subjects on 2 cores"], rows))
@@ -103,7 +124,8 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "label_quality.md").write_text(text + "\n")
     write_json(out / "label_quality.json", {"meta": run_metadata(study="label_quality", subjects=subjects,
-                                                                 every=args.every, input=args.input),
+                                                                 every=args.every, input=args.input,
+                                                                 unit_frames=args.unit_frames),
                                             "rows": records})
     print(f"\nwrote {out}/label_quality.md, label_quality.json")
     return 0
