@@ -124,14 +124,14 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         print(f"all: error: --tables: expected names among {list(TABLES)}, got {bad}", file=sys.stderr)
         return 2
+    if args.jobs < 1:
+        print(f"all: error: --jobs: expected a positive count, got {args.jobs}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(message)s")
     from tqdm.auto import tqdm
 
     out = Path(args.out or f"runs/all{'-quick' if args.quick else ''}")
     t0 = time.perf_counter()
-    if args.jobs < 1:
-        print(f"all: error: --jobs: expected a positive count, got {args.jobs}", file=sys.stderr)
-        return 2
     side_by_side = args.jobs > 1 and len(names) > 1
     done: dict[str, dict] = {}
     bar = tqdm(total=len(names), desc="tables", unit="table")

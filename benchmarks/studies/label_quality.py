@@ -38,15 +38,13 @@ def parse_method(text: str) -> tuple[str, dict]:
 
 
 def unit_frames(seq):
-    """``seq`` with each frame's 2D centred on its visible points and divided by their xy norm."""
+    """``seq`` with each frame's 2D centred on its visible points and divided by their xy norm
+    (:func:`prn.data.normalize_2d`, PRN's input normalisation)."""
     import dataclasses
 
-    vis = seq.visibility if seq.visibility is not None else np.ones(seq.points_2d.shape[:2], bool)
-    w = vis[..., None].astype(float)
-    centre = (seq.points_2d * w).sum(axis=1, keepdims=True) / np.maximum(w.sum(axis=1, keepdims=True), 1)
-    x = (seq.points_2d - centre) * w
-    norm = np.linalg.norm(x.reshape(len(x), -1), axis=1)
-    return dataclasses.replace(seq, points_2d=(seq.points_2d - centre) / np.where(norm > 0, norm, 1)[:, None, None])
+    from prn.data import normalize_2d
+
+    return dataclasses.replace(seq, points_2d=normalize_2d(seq.points_2d, seq.visibility)[0])
 
 
 def main(argv: list[str] | None = None) -> int:
