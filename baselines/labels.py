@@ -17,7 +17,9 @@ each, or a Dask cluster), and its reconstruction saved at once under a key made 
 solver, its parameters and the code (:func:`code_version`): a rerun is instant and an interrupted run resumes.
 A solver that fails on a cut, or returns shapes that are not finite or whose depth spread exceeds
 ``DIVERGED_DEPTH`` times the 2D spread, is recorded as failed; those frames get no label and are left out of
-training (counted in the summary), never replaced.
+training (counted in the summary), never replaced. A point visible in no frame of a cut (the Stacked Hourglass
+detections have no Neck/Nose) constrains nothing: the cut is solved without it and its label is NaN, so a network
+learns that point from nothing but its own loss (PRN-L's PR term; none for a "+NN" row).
 
 Solver settings: each solver's defaults, except for a cost bound (:data:`LABEL_DEFAULTS`; ``--set`` overrides
 them). CSF2 and SPM choose K by their one-solve rules (rank and energy): their default agreement rule
@@ -81,7 +83,7 @@ class LabelSet:
 
     Attributes:
         labels: per training sequence `(F, P, 3)` camera-frame shapes in the units of its 2D; NaN where the cut
-            holding that frame failed.
+            holding that frame failed, and at the points that cut never saw.
         summary: solver, cuts, failed cuts, labelled frames, wall time, the labels' MPJPE against the ground truth
             (PRN protocol) where the sequences have it.
         failed: ``{cut key: reason}``.
@@ -153,14 +155,15 @@ def _solve_cut(points_2d: np.ndarray, visibility: np.ndarray | None, name: str, 
     import nrsfm
 
     t0 = time.perf_counter()
-    seq = Sequence(points_2d=points_2d, visibility=visibility, name=name)
+    seen = np.ones(points_2d.shape[1], bool) if visibility is None else (np.asarray(visibility) > 0).any(axis=0)
+    seq = Sequence(points_2d=points_2d, visibility=visibility, name=name).select_points(seen)
     status, message, shapes = "ok", "", np.full(points_2d.shape[:2] + (3,), np.nan)
     try:
         with threadpool_limits(limits=1):
             rec = nrsfm.solve(seq, method, **params)
-        shapes = rec.points_3d
-        spread_2d = float(np.ptp(points_2d, axis=1).max()) or 1.0
-        spread_z = float(np.ptp(shapes[..., 2], axis=1).max()) if np.isfinite(shapes).all() else np.inf
+        shapes[:, seen] = rec.points_3d
+        spread_2d = float(np.nanmax(np.ptp(seq.points_2d, axis=1))) or 1.0
+        spread_z = float(np.ptp(shapes[:, seen, 2], axis=1).max()) if np.isfinite(shapes[:, seen]).all() else np.inf
         if not np.isfinite(spread_z) or spread_z > DIVERGED_DEPTH * spread_2d:
             status, message = "failed", f"diverged: depth spread {spread_z:.3g} against 2D spread {spread_2d:.3g}"
             shapes = np.full_like(shapes, np.nan)
@@ -265,7 +268,8 @@ _MIRROR = np.array([1.0, 1.0, -1.0])
 
 def resolve_reflections(reconstructions: list[np.ndarray], n_tuples: int = 40, iters: int = 200) -> np.ndarray:
     """Which of the `(F, P, 3)` camera-frame ``reconstructions`` to mirror (``z -> -z``) so that all share one
-    handedness, without ground truth. NaN reconstructions are never mirrored.
+    handedness, without ground truth. NaN reconstructions (failed cuts) are never mirrored; the signatures use the
+    points every solved cut has.
 
     A mirror image negates the signed volume of every four points (:func:`signed_volumes`), but most of them
     change sign with the pose too. So the ``n_tuples`` 4-point tuples whose volume keeps its sign best within the
@@ -277,12 +281,15 @@ def resolve_reflections(reconstructions: list[np.ndarray], n_tuples: int = 40, i
     Returns:
         `(len(reconstructions),)` booleans.
     """
-    ok = [i for i, r in enumerate(reconstructions) if np.isfinite(r).all()]
+    ok = [i for i, r in enumerate(reconstructions) if np.isfinite(r).any()]
     flips = np.zeros(len(reconstructions), bool)
     if len(ok) < 2:
         return flips
-    tuples = _tuples(reconstructions[ok[0]].shape[1])
-    volumes = [signed_volumes(reconstructions[i], tuples) for i in ok]  # (F_c, T) each
+    points = np.logical_and.reduce([np.isfinite(reconstructions[i]).all(axis=(0, 2)) for i in ok])
+    if points.sum() < 4:
+        return flips
+    tuples = _tuples(int(points.sum()))
+    volumes = [signed_volumes(reconstructions[i][:, points], tuples) for i in ok]  # (F_c, T) each
     steadiness = np.mean([np.minimum(np.abs(v.mean(0)) / (v.std(0) + 1e-12), 10.0) for v in volumes], axis=0)
     chosen = np.argsort(-steadiness)[:n_tuples]
     sig = np.stack([v[:, chosen].mean(axis=0) for v in volumes])  # (n, n_tuples)
@@ -334,10 +341,12 @@ def make_labels(sequences: list[Sequence], method: str, params: dict | None = No
         for (i, t), shape in zip(cut.sources, rec):
             labels[i][t] = shape
     frames = int(sum(s.n_frames for s in sequences))
-    labelled = int(sum(np.isfinite(lab).all(axis=(1, 2)).sum() for lab in labels))
+    labelled = int(sum(labelled_frames(lab).sum() for lab in labels))
+    unlabelled_points = int(sum((~np.isfinite(lab[labelled_frames(lab)]).all(axis=2)).sum() for lab in labels))
     summary = {"method": method, "params": dict(params or {}), "dataset": dataset, "gap": gap, "cuts": len(cuts),
                "failed": len(failed), "reused": reused, "frames": frames, "labelled_frames": labelled,
-               "mirrored": int(flips.sum()), "seconds": time.perf_counter() - t0, "jobs": jobs, "backend": backend,
+               "unlabelled_points": unlabelled_points, "mirrored": int(flips.sum()),
+               "seconds": time.perf_counter() - t0, "jobs": jobs, "backend": backend,
                "label_mpjpe": label_error(labels, sequences if truth is None else truth)}
     return LabelSet(labels, summary, failed)
 
@@ -347,7 +356,7 @@ def label_error(labels: list[np.ndarray], truth: list) -> float | None:
     ground truth's units (millimetres on Human3.6M, whatever the labels' own units); None without ground truth."""
     errors = []
     for lab, seq in zip(labels, truth):
-        ok = np.isfinite(lab).all(axis=(1, 2))
+        ok = labelled_frames(lab)
         if seq.points_3d is None or not ok.any():
             continue
         errors.append(label_errors_per_frame(lab[ok], seq.points_3d[ok]))
@@ -357,12 +366,22 @@ def label_error(labels: list[np.ndarray], truth: list) -> float | None:
 def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """`(F,)` PRN-protocol MPJPE of `(F, P, 3)` pseudo-labels against `(F, P, 3)` ground truth as a network learns
     them: each labelled frame normalised by its own xy norm (:func:`baselines.supervised.normalised_targets`), then
-    scaled by the ground truth's."""
+    scaled by the ground truth's. Where some points have no label (NaN in some frame), the error is that of the
+    points labelled in every frame, both sides restricted to them."""
     from baselines.supervised import normalised_targets
     from nrsfm.metrics import mpjpe_prn_per_frame
     from prn.data import denormalize
 
+    points = np.isfinite(labels).all(axis=(0, 2))
+    if not points.any():
+        raise ValidationError("label_errors_per_frame: no point is labelled in every frame")
+    labels, truth = labels[:, points], truth[:, points]
     return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
+
+
+def labelled_frames(labels: np.ndarray) -> np.ndarray:
+    """`(F,)` whether each frame of `(F, P, 3)` labels has a label (some point finite: its cut was solved)."""
+    return np.isfinite(labels).all(axis=2).any(axis=1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -397,6 +416,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"labels: error: {exc}", file=sys.stderr)
         return 2
     s = result.summary
+    if not s["labelled_frames"]:
+        reasons = "; ".join(f"{k}: {v}" for k, v in list(result.failed.items())[:3])
+        print(f"labels: error: every one of the {s['cuts']} cuts failed, no frame has a label ({reasons} ...)",
+              file=sys.stderr)
+        return 1
     print("| solver | data | cuts | failed | labelled frames | wall time (s) | label MPJPE (mm, PRN protocol) |")
     print("|---|---|---|---|---|---|---|")
     mp = f"{s['label_mpjpe']:.1f}" if s["label_mpjpe"] is not None else "no ground truth"

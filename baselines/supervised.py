@@ -7,7 +7,9 @@ Targets are normalised as the PRN protocol normalises ground truth: centred on t
 their own xy Frobenius norm (:func:`prn.data.normalize_3d`), so predictions are scaled back to millimetres by the
 test ground truth's xy norm exactly like PRN's.
 
-Frames without a label (their NRSfM cut failed) are left out.
+Frames without a label (their NRSfM cut failed) are left out; points without a label (a point the cut never saw:
+NaN in the target) are left out of the loss, and such a target is normalised on its labelled points as a test input
+is on its visible ones (:func:`prn.data.normalize_2d`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import torch
 
 from nrsfm.errors import ValidationError
 from nrsfm.sequence import Sequence
-from prn.data import TrainingSet, build_training_set, normalize_3d
+from prn.data import TrainingSet, build_training_set, normalize_2d, normalize_3d
 from prn.train import TrainConfig, TrainResult, train
 
 log = logging.getLogger(__name__)
@@ -32,7 +34,7 @@ class Supervised3D:
     """The supervised objective (:class:`prn.train.Objective`).
 
     Attributes:
-        targets: `(N, P, 3)` normalised target shapes, one per training frame (NaN: unlabelled).
+        targets: `(N, P, 3)` normalised target shapes, one per training frame (NaN: an unlabelled frame or point).
         batch: frames per minibatch (PRN's 128 = 4 groups x 32).
     """
 
@@ -40,13 +42,16 @@ class Supervised3D:
     batch: int = 128
 
     def __post_init__(self) -> None:
-        self.labelled = np.flatnonzero(np.isfinite(self.targets).all(axis=(1, 2)))
+        mask = np.isfinite(self.targets).all(axis=2)  # (N, P) labelled points
+        self.labelled = np.flatnonzero(mask.any(axis=1))
         if not len(self.labelled):
             raise ValidationError("Supervised3D: no training frame has a label (every NRSfM cut failed)")
+        self.every_point = bool(mask[self.labelled].all())
         self._targets = torch.as_tensor(np.nan_to_num(self.targets), dtype=torch.float32)
+        self._mask = torch.as_tensor(mask, dtype=torch.float32)
 
     def to(self, device: torch.device) -> "Supervised3D":
-        self._targets = self._targets.to(device)
+        self._targets, self._mask = self._targets.to(device), self._mask.to(device)
         return self
 
     def sample(self, rng: np.random.Generator) -> np.ndarray:
@@ -57,18 +62,33 @@ class Supervised3D:
         if visible is not None:  # the input was normalised on these points: the target alike
             from prn.train import renormalise
 
+            if not self.every_point:
+                raise ValidationError("Supervised3D: targets with unlabelled points cannot be renormalised on "
+                                      "the visible points of a training input; train without missing_points")
             target = renormalise(target, visible, zero_missing=False)
-        return ((pred - target) ** 2).sum(dim=2).mean()
+        if self.every_point:
+            return ((pred - target) ** 2).sum(dim=2).mean()
+        mask = self._mask[idx]
+        return (((pred - target) ** 2).sum(dim=2) * mask).sum() / mask.sum().clamp_min(1.0)
 
 
 def normalised_targets(shapes: list[np.ndarray]) -> np.ndarray:
-    """`(N, P, 3)` targets from per-sequence `(F, P, 3)` shapes (NaN frames stay NaN): :func:`normalize_3d`."""
+    """`(N, P, 3)` targets from per-sequence `(F, P, 3)` shapes: :func:`normalize_3d`; a frame with NaN points is
+    centred on its finite points and divided by their xy norm times ``sqrt(P / finite)``, as
+    :func:`prn.data.normalize_2d` treats an input's visible points (its NaN points and NaN frames stay NaN)."""
     out = []
     for s in shapes:
         t = np.full(s.shape, np.nan)
-        ok = np.isfinite(s).all(axis=(1, 2))
-        if ok.any():
-            t[ok] = normalize_3d(s[ok])[0]
+        has = np.isfinite(s).all(axis=2)  # (F, P)
+        full = has.all(axis=1)
+        if full.any():
+            t[full] = normalize_3d(s[full])[0]
+        part = has.any(axis=1) & ~full
+        if part.any():
+            x, w = s[part], has[part]
+            _, scale = normalize_2d(x[..., :2], w)
+            centre = np.nan_to_num(x).sum(axis=1, keepdims=True) / w.sum(axis=1)[:, None, None]
+            t[part] = (x - centre) / scale[:, None, None]
         out.append(t)
     return np.concatenate(out)
 

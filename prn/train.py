@@ -71,7 +71,7 @@ class TrainConfig:
     ``label_weight`` > 0 adds pseudo-labels to the PR loss (``train(...,
     labels=...)``: one 3D shape per training frame, e.g. a per-sequence
     NRSfM solver's, normalised as :func:`prn.data.normalize_3d` does): the
-    term ``label_weight * 1/2 sum ||X - L||^2`` over the labelled frames of
+    term ``label_weight * 1/2 sum ||X - L||^2`` over the labelled points of
     each minibatch, on the scale of the data term. ``label_decay="linear"``
     lowers its weight linearly to 0 at the last iteration, so that the PR loss
     alone shapes the end of training; ``"none"`` keeps it.
@@ -221,7 +221,7 @@ def train(data: TrainingSet, config: TrainConfig = TrainConfig(), out_dir: str |
         config: hyper-parameters; ``lam = 0`` trains "PRN w/o reg".
         objective: replaces the PR loss and the group sampling (same network, optimiser, schedule, checkpoints).
         labels: with ``config.label_weight`` > 0, `(N, P, 3)` normalised pseudo-labels, one per training frame
-            of ``data`` (NaN: unlabelled), pulled towards beside the PR loss.
+            of ``data`` (NaN: an unlabelled frame or point), pulled towards beside the PR loss.
         out_dir: where ``checkpoint.pt`` and ``model.pt`` go (None: no files).
         resume: continue from ``out_dir/checkpoint.pt`` when it exists.
         progress: show a tqdm bar (quiet when stderr is not a terminal).
@@ -331,7 +331,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             raise ValidationError(f"label_weight > 0: expected labels of shape ({len(data.inputs)}, {data.n_points}, "
                                   f"3) beside the PR loss, got {None if labels is None else np.shape(labels)}"
                                   + (" with another objective" if objective is not None else ""))
-        labelled = torch.as_tensor(np.isfinite(labels).all(axis=(1, 2)), device=device)
+        labelled = torch.as_tensor(np.isfinite(labels).all(axis=2), device=device)  # (N, P) labelled points
         label_all = torch.as_tensor(np.nan_to_num(labels), dtype=torch.float32, device=device)
     y_all = torch.as_tensor(data.targets, dtype=torch.float32, device=device)
     yw_all = torch.as_tensor(data.target_weights, dtype=torch.float32, device=device)
@@ -374,8 +374,8 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                     x, y = renormalise(x_all[idx], xw), renormalise(y, yw)
             pred = forward(idx, xw, x)
             pulled = None
-            if config.label_weight > 0:  # 1/2 sum ||X - L||^2 over the labelled frames
-                pulled = 0.5 * (((pred - label_all[idx]) * labelled[idx].to(pred.dtype)[:, None, None]) ** 2).sum()
+            if config.label_weight > 0:  # 1/2 sum ||X - L||^2 over the labelled points
+                pulled = 0.5 * (((pred - label_all[idx]) * labelled[idx].to(pred.dtype)[:, :, None]) ** 2).sum()
             if config.point_groups > 1:
                 pred, y, yw = _point_groups(pred, y, yw, config.point_groups)
             loss = pr_loss(pred, y, yw, lam=config.lam, group_size=config.group_size,

@@ -84,6 +84,46 @@ def test_labels_end_to_end_and_the_dask_backend_gives_the_same(walk, tmp_path):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
 
 
+def test_a_point_no_frame_shows_is_left_unlabelled_and_the_rest_labelled(walk, tmp_path):
+    """The Stacked Hourglass detections have no Neck/Nose (point 9): each cut is solved on the points it shows, the
+    hidden point's label is NaN, every frame keeps its label, the reflections are still resolved on the others."""
+    hidden = [s.replace(visibility=np.ones((s.n_frames, s.n_points)) * (np.arange(s.n_points) != 9))
+              for s in walk]
+    full = make_labels(walk, "csf2", out_dir=tmp_path, dataset="full", progress=False)
+    part = make_labels(hidden, "csf2", out_dir=tmp_path, dataset="hidden", progress=False)
+    s = part.summary
+    assert s["failed"] == 0 and s["labelled_frames"] == s["frames"] == 240 and s["unlabelled_points"] == 240
+    for lab in part.labels:
+        assert np.isnan(lab[:, 9]).all() and np.isfinite(np.delete(lab, 9, axis=1)).all()
+    # mirrored to one handedness on the 16 points: most frames' depth agrees in sign with the truth's, or most
+    # disagree (the one global ambiguity); CSF2 on 6-frame cuts: 70% of the frames (all 17 points: 76%)
+    assert s["mirrored"] > 0
+    keep = np.arange(17) != 9
+    z = lambda a: a[:, keep, 2] - a[:, keep, 2].mean(axis=1, keepdims=True)  # noqa: E731
+    agree = np.concatenate([(z(lab) * z(w.points_3d)).sum(axis=1) > 0 for lab, w in zip(part.labels, walk)])
+    assert max(agree.mean(), 1 - agree.mean()) > 0.65
+    # scored on the 16 labelled points, about as good as the labels of all 17 (136 and 95 mm here)
+    assert s["label_mpjpe"] < 2 * full.summary["label_mpjpe"]
+    # the targets a network learns: finite on the labelled points, normalised as an input on its visible points
+    from baselines.supervised import Supervised3D, normalised_targets
+    from prn.data import normalize_2d
+
+    targets = normalised_targets(part.labels)
+    assert np.isnan(targets[:, 9]).all() and np.isfinite(np.delete(targets, 9, axis=1)).all()
+    weights = np.concatenate([h.weights for h in hidden])
+    x2d, _ = normalize_2d(np.nan_to_num(np.concatenate(part.labels))[..., :2], weights)
+    np.testing.assert_allclose(np.nan_to_num(targets[..., :2]), x2d, atol=1e-9)
+    objective = Supervised3D(targets, batch=8)
+    assert len(objective.labelled) == 240 and not objective.every_point
+    import torch
+
+    idx = torch.arange(8)
+    exact = torch.as_tensor(np.nan_to_num(targets[:8]), dtype=torch.float32)
+    wrong_hidden = exact.clone()
+    wrong_hidden[:, 9] += 5.0  # the unlabelled point costs nothing
+    assert objective.loss(exact, idx) == 0 and objective.loss(wrong_hidden, idx) == 0
+
+
 def test_labels_of_perspective_tracks_are_scored_against_the_millimetre_ground_truth(tmp_path):
     persp = human_sequences(("S1",), ("walking",), projection="perspective", n_frames=30, takes=1)
     weak = [s.to_weak_perspective() for s in persp]  # their ground truth divided by each frame's depth
@@ -108,3 +148,11 @@ def test_a_root_without_human36m_is_an_error_not_the_stand_in(tmp_path, capsys):
     code = labels.main(["--root", str(tmp_path), "--out", str(tmp_path / "labels"), "--no-progress"])
     assert code == 2 and "h36m: expected a dataset folder" in capsys.readouterr().err
     assert not (tmp_path / "labels").exists()  # nothing was solved
+
+
+def test_labels_cli_fails_when_every_cut_fails(tmp_path, capsys, monkeypatch):
+    tiny = human_sequences(("S1",), ("walking",), projection="orthographic", n_frames=10, takes=1)  # 2-frame cuts
+    monkeypatch.setattr(labels, "_training_sequences", lambda args: (tiny, "tiny"))
+    code = labels.main(["--method", "csf2", "--out", str(tmp_path), "--no-progress", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert code == 1 and "every one of the 20 cuts failed" in err and "SolverError" in err

@@ -72,18 +72,22 @@ def test_table1_validate_holds_a_training_subject_out_and_evaluates_on_it(tmp_pa
     assert "--validate: expected one of the training subjects" in capsys.readouterr().err
 
 
-def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("inp", ["gt-persp", "sh"])
+def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path, capsys, monkeypatch, inp):
+    """On GT-persp and on the detections (SH: no Neck/Nose in any frame, so that point has no label)."""
     monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1", "S5"))
     out = tmp_path / "p"
     assert table1.main(["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
-                        "--input", "gt-persp", "--methods", "PR + NN,PRN-L"]) == 0
+                        "--input", inp, "--methods", "PR + NN,PRN-L"]) == 0
     data = json.loads((out / "table1.json").read_text())
-    avg = {r["method"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"] if r["input"] == "gt-persp"}
+    avg = {r["method"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"] if r["input"] == inp}
     assert set(avg) == {"PR + NN", "PRN-L"} and all(np.isfinite(v) for v in avg.values())
     timings = data["meta"]["timings"]
-    first, second = timings["PR + NN (gt-persp)"]["labels"], timings["PRN-L (gt-persp)"]["labels"]
+    first, second = timings[f"PR + NN ({inp})"]["labels"], timings[f"PRN-L ({inp})"]["labels"]
     assert second["reused"] == second["cuts"] > 0  # PRN-L read PR + NN's labels back
     assert 1 < first["label_mpjpe_mm"] < 1000  # scored in millimetres, not in the weak-perspective tracks' units
+    assert first["failed"] == 0 and first["labelled_frames"] == first["frames"]
+    assert (first["unlabelled_points"] == first["frames"]) == (inp == "sh")
 
 
 def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, monkeypatch):
