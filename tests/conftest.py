@@ -1,4 +1,4 @@
-"""Shared fixtures. Real-data tests read ``$NRSFM_DATA`` and are skipped when it is absent."""
+"""Shared fixtures. Real-data tests read ``$NRSFM_DATA`` (the ``real_data`` fixture) and are skipped when it is absent."""
 
 from __future__ import annotations
 
@@ -41,28 +41,39 @@ def pytest_configure(config):
         torch.set_num_threads(1)
 
 
-def _data_dir(name: str) -> Path | None:
+def _real_data(*parts: str) -> Path:
+    """``$NRSFM_DATA/<parts>`` or a skip naming what is missing.
+
+    A folder or file under the data root may be absent (the shared copy leaves some out), so its test skips. A root
+    that is unset or not a folder while ``NRSFM_REQUIRE_DATA=1`` (``.ci/run`` sets it when the data lies beside the
+    checkout) fails the test instead, so that real-data tests cannot skip silently when the data should be there.
+    """
     root = os.environ.get("NRSFM_DATA")
-    if not root:
-        return None
-    path = Path(root) / name
-    return path if path.is_dir() else None
+    if not root or not Path(root).is_dir():
+        reason = ("NRSFM_DATA is not set" if not root else f"NRSFM_DATA={root} is not a folder")
+        if os.environ.get("NRSFM_REQUIRE_DATA") == "1":
+            pytest.fail(f"{reason}, but NRSFM_REQUIRE_DATA=1 says the real data should be there", pytrace=False)
+        pytest.skip(f"{reason}: real-data test")
+    path = Path(root).joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"NRSFM_DATA={root} has no {'/'.join(parts)}")
+    return path
+
+
+@pytest.fixture
+def real_data():
+    """:func:`_real_data`: ``real_data("surreal", "sample")`` is that path under ``$NRSFM_DATA``, or a skip."""
+    return _real_data
 
 
 @pytest.fixture(scope="session")
 def cmu_dir() -> Path:
-    path = _data_dir("nrsfm")
-    if path is None:
-        pytest.skip("NRSFM_DATA/nrsfm not available")
-    return path
+    return _real_data("nrsfm")
 
 
 @pytest.fixture(scope="session")
 def h36m_dir() -> Path:
-    path = _data_dir("h36m")
-    if path is None:
-        pytest.skip("NRSFM_DATA/h36m not available")
-    return path
+    return _real_data("h36m")
 
 
 @pytest.fixture(autouse=True)

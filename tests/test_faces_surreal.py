@@ -137,12 +137,8 @@ def test_aflw2000_bad_files_give_clear_errors(tmp_path):
         load_aflw2000(tmp_path)
 
 
-def test_aflw2000_real_faces(tmp_path):
-    import os
-
-    root = os.environ.get("NRSFM_DATA")
-    if not root or not os.path.isdir(os.path.join(root, "aflw2000")):
-        pytest.skip("NRSFM_DATA/aflw2000 not available")
+def test_aflw2000_real_faces(real_data):
+    root = real_data("aflw2000").parent
     from nrsfm.datasets.aflw import load_aflw2000, split_aflw2000
 
     seq = load_aflw2000(root, input="reannotated")
@@ -191,13 +187,8 @@ def test_surreal_info_files_give_24_joints_in_the_camera_frame(tmp_path):
     assert world.shape == (5, 24, 3)
 
 
-def test_surreal_info_real_sample_reprojects_within_a_pixel():
-    import os
-
-    root = os.environ.get("NRSFM_DATA")
-    path = None if not root else os.path.join(root, "surreal", "sample", "01_01_c0001_info.mat")
-    if path is None or not os.path.isfile(path):
-        pytest.skip("NRSFM_DATA/surreal/sample not available")
+def test_surreal_info_real_sample_reprojects_within_a_pixel(real_data):
+    path = real_data("surreal", "sample", "01_01_c0001_info.mat")
     from nrsfm.datasets.surreal import load_surreal_info
 
     seq = load_surreal_info(path)
