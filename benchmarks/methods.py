@@ -165,20 +165,26 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
     """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
     weak-perspective ones), one `(F, P, 3)` array per training sequence, and their cache key; the label summary
     goes to ``ctx.timings``."""
-    from baselines.labels import code_version, make_labels
+    from baselines.labels import code_version, make_labels, unit_frames
 
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in split.train_inputs]
+    dataset = split.labels_tag or split.tag
+    if ctx.label_frames == "unit":
+        tracks, dataset = [unit_frames(s) for s in tracks], dataset + "-unit-frames"
     labels = make_labels(tracks, solver, ctx.label_params.get(solver),
-                         out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=split.labels_tag or split.tag,
+                         out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=dataset,
                          jobs=ctx.jobs, progress=ctx.progress, truth=split.train_targets)
     s = labels.summary
-    s["label_mpjpe_mm"] = s["label_mpjpe"]
+    s["label_mpjpe_mm"], s["frames_solved"] = s["label_mpjpe"], ctx.label_frames
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s (the ground "
              "truth's units: mm on Human3.6M), %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
              f"{s['label_mpjpe_mm']:.1f}" if s["label_mpjpe_mm"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
-    return labels.labels, {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
+    key = {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
+    if ctx.label_frames != "as-is":
+        key["frames"] = ctx.label_frames
+    return labels.labels, key
 
 
 def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.ndarray]:

@@ -280,6 +280,9 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--label-decay", choices=["linear", "none"], default=RunContext.label_decay,
                    help=f"PRN-L: the weight stays, or falls linearly to 0 by the last iteration (default "
                         f"{RunContext.label_decay}, chosen on S8 held out)")
+    p.add_argument("--label-frames", choices=["as-is", "unit"], default=RunContext.label_frames,
+                   help="PRN-L and the +NN rows: solve each training frame's 2D as it is (default) or centred and "
+                        "scaled to a unit xy norm first (weak-perspective tracks change scale with depth and camera)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -298,6 +301,14 @@ def data_notice(args: argparse.Namespace) -> str | None:
     """Settle ``args.data``: h36m when ``--root`` or ``$NRSFM_DATA`` holds ``h36m/``, else the synthetic stand-in,
     whose notice is returned (:func:`benchmarks.common.choose_data`)."""
     return choose_data(args, [("h36m", ("h36m",))], "table1")
+
+
+def _label_parameters(summary: dict) -> str:
+    """The label table's "parameters" cell: the solver's, and how the frames were solved when not as they are."""
+    parts = [f"{a}={b}" for a, b in summary["params"].items()]
+    if summary.get("frames_solved", "as-is") != "as-is":
+        parts.append(f"{summary['frames_solved']} frames")
+    return ", ".join(parts) or "defaults"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -361,7 +372,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      c3dpo_precision=args.c3dpo_precision, c3dpo_cuda_graph=not args.c3dpo_eager,
                      c3dpo_compile=args.c3dpo_compile, c3dpo_repeat=args.c3dpo_repeat,
                      compress_schedule=args.compress_schedule, label_solver=args.label_solver,
-                     label_weight=args.label_weight, label_decay=args.label_decay,
+                     label_weight=args.label_weight, label_decay=args.label_decay, label_frames=args.label_frames,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -416,9 +427,9 @@ def _run(args: argparse.Namespace) -> int:
         md.append("\nPseudo-labels (training frames; MPJPE against the ground truth, PRN protocol):\n")
         md.append(markdown_table(["row", "solver", "parameters", "cuts", "failed", "labelled frames",
                                   "label MPJPE (mm)", "time in this run (s; cuts read back are not solved again)"],
-                                 [[k, s["method"], ", ".join(f"{a}={b}" for a, b in s["params"].items()) or "defaults",
-                                   s["cuts"], s["failed"], f"{s['labelled_frames']} of {s['frames']}",
-                                   s.get("label_mpjpe_mm"), s["seconds"]] for k, s in labels]))
+                                 [[k, s["method"], _label_parameters(s), s["cuts"], s["failed"],
+                                   f"{s['labelled_frames']} of {s['frames']}", s.get("label_mpjpe_mm"), s["seconds"]]
+                                  for k, s in labels]))
     if notice:
         md.insert(0, notice + "; the paper columns are Human3.6M numbers, shown for orientation only.\n")
     text = "\n".join(md)
@@ -428,7 +439,7 @@ def _run(args: argparse.Namespace) -> int:
                         inputs=list(inputs), protocols=PROTOCOL_TEXT,
                         schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
-                        label_params=ctx.label_params,
+                        label_params=ctx.label_params, label_frames=ctx.label_frames,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
                                "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs,

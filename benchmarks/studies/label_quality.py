@@ -37,16 +37,6 @@ def parse_method(text: str) -> tuple[str, dict]:
     return name, {a.split("=", 1)[0]: getattr(params, a.split("=", 1)[0]) for a in assignments}
 
 
-def unit_frames(seq):
-    """``seq`` with each frame's 2D centred on its visible points and divided by their xy norm
-    (:func:`prn.data.normalize_2d`, PRN's input normalisation)."""
-    import dataclasses
-
-    from prn.data import normalize_2d
-
-    return dataclasses.replace(seq, points_2d=normalize_2d(seq.points_2d, seq.visibility)[0])
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.studies.label_quality", description=__doc__.split("\n\n")[0])
     p.add_argument("--root", help="data folder holding h36m/ (default: $NRSFM_DATA)")
@@ -65,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from baselines.labels import _MIRROR, _cache_folder, _cut_path, multiview_cuts, resolve_reflections, solve_cuts
-    from baselines.labels import label_errors_per_frame
+    from baselines.labels import label_errors_per_frame, unit_frames
     from nrsfm.datasets import find_dataset, h36m
     from nrsfm.errors import ValidationError
     from nrsfm.io import read_npz

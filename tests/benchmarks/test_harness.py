@@ -88,6 +88,12 @@ def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path,
     assert 1 < first["label_mpjpe_mm"] < 1000  # scored in millimetres, not in the weak-perspective tracks' units
     assert first["failed"] == 0 and first["labelled_frames"] == first["frames"]
     assert (first["unlabelled_points"] == first["frames"]) == (inp == "sh")
+    assert table1.main(["--quick", "--iterations", "12", "--out", str(tmp_path / "u"), "--no-progress", "--jobs", "1",
+                        "--input", inp, "--methods", "PR + NN", "--label-frames", "unit"]) == 0
+    unit = json.loads((tmp_path / "u" / "table1.json").read_text())["meta"]["timings"][f"PR + NN ({inp})"]["labels"]
+    assert unit["dataset"].endswith("-unit-frames") and unit["reused"] == 0  # solved again, cached apart
+    assert unit["frames_solved"] == "unit" and 1 < unit["label_mpjpe_mm"] < 1000
+    assert "unit frames" in (tmp_path / "u" / "table1.md").read_text()
 
 
 def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, monkeypatch):
