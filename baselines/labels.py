@@ -379,18 +379,6 @@ def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
 
 
-def unit_frames(seq: Sequence) -> Sequence:
-    """``seq`` with each frame's 2D centred on its visible points and divided by their xy norm
-    (:func:`prn.data.normalize_2d`, PRN's input normalisation). Weak-perspective tracks (GT-persp, SH) change
-    scale with each frame's depth and camera, which an orthographic solver reads as deformation; a label is
-    normalised per frame before a network learns it, so solving such frames loses nothing."""
-    import dataclasses
-
-    from prn.data import normalize_2d
-
-    return dataclasses.replace(seq, points_2d=normalize_2d(seq.points_2d, seq.visibility)[0])
-
-
 def labelled_frames(labels: np.ndarray) -> np.ndarray:
     """`(F,)` whether each frame of `(F, P, 3)` labels has a label (some point finite: its cut was solved)."""
     return np.isfinite(labels).all(axis=2).any(axis=1)

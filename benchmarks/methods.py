@@ -165,7 +165,8 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
     """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
     weak-perspective ones), one `(F, P, 3)` array per training sequence, and their cache key; the label summary
     goes to ``ctx.timings``."""
-    from baselines.labels import code_version, make_labels, unit_frames
+    from baselines.labels import code_version, make_labels
+    from prn.data import unit_frames
 
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in split.train_inputs]
     dataset = split.labels_tag or split.tag

@@ -52,6 +52,16 @@ def normalize_2d(points_2d: np.ndarray, visibility: np.ndarray | None = None) ->
     return c / scale[:, None, None], scale
 
 
+def unit_frames(seq):
+    """A :class:`~nrsfm.sequence.Sequence` with each frame's 2D centred on its visible points and divided by their
+    xy norm (:func:`normalize_2d`, PRN's input normalisation). Weak-perspective tracks (GT-persp, SH) change scale
+    with each frame's depth and camera, which an orthographic NRSfM solver reads as deformation; a pseudo-label is
+    normalised per frame before a network learns it, so solving such frames loses nothing."""
+    import dataclasses
+
+    return dataclasses.replace(seq, points_2d=normalize_2d(seq.points_2d, seq.visibility)[0])
+
+
 def normalize_3d(points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centre `(F, P, 3)` shapes on the joints' mean; divide by the xy Frobenius norm. Returns (shapes, scales)."""
     c = points_3d - points_3d.mean(axis=1, keepdims=True)

@@ -160,7 +160,7 @@ def test_labels_cli_fails_when_every_cut_fails(tmp_path, capsys, monkeypatch):
 
 
 def test_unit_frames_centres_and_scales_every_frame_to_a_unit_xy_norm():
-    from baselines.labels import unit_frames
+    from prn.data import unit_frames
 
     seq = human_sequences(("S1",), ("walking",), projection="perspective", n_frames=12, takes=1)[0]
     seq = seq.to_weak_perspective()
