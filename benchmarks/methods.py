@@ -28,11 +28,11 @@ def _network(split: Split, ctx: RunContext) -> str:
 
 def cache_config(config) -> dict:
     """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but the later ones (missing points' data term
-    and normalisation, pseudo-labels) only where they are not the default (so that models cached before the
+    and normalisation, pseudo-labels, weight averaging) only where they are not the default (so that models cached before the
     options existed stay valid)."""
     out = dataclasses.asdict(config)
     for name, default in (("missing_in_loss", True), ("missing_normalise", "all"), ("label_weight", 0.0),
-                          ("label_decay", "none")):
+                          ("label_decay", "none"), ("ema", 0.0)):
         if out[name] == default:
             del out[name]
     return out
@@ -40,12 +40,12 @@ def cache_config(config) -> dict:
 
 def _config(ctx: RunContext, network: str, lam: float, **extra):
     """The PRN recipe of ``ctx`` (:func:`benchmarks.registry.schedule`): iterations, schedule, alignment groups,
-    width, missing points and where they are normalised."""
+    width, missing points and where they are normalised, weight averaging."""
     missing = {"missing_points": ctx.missing_points}
     if ctx.missing_points > 0:
         missing["missing_normalise"] = ctx.normalise_on
     return schedule(ctx.iterations, ctx.compress_schedule, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                    groups=ctx.groups, group_size=ctx.group_size, network=network, **missing, **extra)
+                    groups=ctx.groups, group_size=ctx.group_size, network=network, ema=ctx.ema, **missing, **extra)
 
 
 def _predict(model, data, split: Split, ctx: RunContext) -> Predictions:

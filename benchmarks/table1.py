@@ -283,6 +283,9 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--label-frames", choices=["as-is", "unit"], default=RunContext.label_frames,
                    help="PRN-L and the +NN rows: solve each training frame's 2D as it is (default) or centred and "
                         "scaled to a unit xy norm first (weak-perspective tracks change scale with depth and camera)")
+    p.add_argument("--ema", type=float, default=RunContext.ema,
+                   help="the networks return an exponential moving average of their weights with this decay per "
+                        "iteration (prn.train.TrainConfig.ema; default 0: the last iterate, as the paper)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -356,6 +359,8 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
         raise ValidationError(f"--c3dpo-lr: expected a learning rate > 0, got {args.c3dpo_lr}")
     if args.c3dpo_repeat < 1:
         raise ValidationError(f"--c3dpo-repeat: expected >= 1, got {args.c3dpo_repeat}")
+    if not 0 <= args.ema < 1:
+        raise ValidationError(f"--ema: expected a decay in [0, 1) (0: the last iterate), got {args.ema}")
     if not args.label_weight >= 0:
         raise ValidationError(f"--label-weight: expected a weight >= 0, got {args.label_weight}")
     from nrsfm.solvers.registry import available_solvers
@@ -373,6 +378,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      c3dpo_compile=args.c3dpo_compile, c3dpo_repeat=args.c3dpo_repeat,
                      compress_schedule=args.compress_schedule, label_solver=args.label_solver,
                      label_weight=args.label_weight, label_decay=args.label_decay, label_frames=args.label_frames,
+                     ema=args.ema,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -439,7 +445,7 @@ def _run(args: argparse.Namespace) -> int:
                         inputs=list(inputs), protocols=PROTOCOL_TEXT,
                         schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
-                        label_params=ctx.label_params, label_frames=ctx.label_frames,
+                        label_params=ctx.label_params, label_frames=ctx.label_frames, ema=ctx.ema,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
                                "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs,

@@ -76,6 +76,12 @@ class TrainConfig:
     lowers its weight linearly to 0 at the last iteration, so that the PR loss
     alone shapes the end of training; ``"none"`` keeps it.
 
+    ``ema`` in (0, 1) keeps an exponential moving average of the weights and BN
+    statistics, ``A <- ema * A + (1 - ema) * W`` after every step (from the
+    first), and returns and saves it instead of the last iterate: the average
+    of the last ``~1 / (1 - ema)`` iterations, less tied to the last
+    minibatches. 0 (the default, the paper's) keeps the last iterate.
+
     ``network``: ``"fcn"`` (PRN-FCN on 2D points) or a torchvision backbone
     name (:data:`prn.images.BACKBONES`, ``"resnet50"`` as the paper) for
     PRN-CNN on the training set's images; ``pretrained`` starts the backbone
@@ -104,6 +110,7 @@ class TrainConfig:
     pretrained: bool = True
     label_weight: float = 0.0
     label_decay: str = "none"
+    ema: float = 0.0
 
     def __post_init__(self) -> None:
         if self.iterations < 1 or self.groups < 1 or self.group_size < 2:
@@ -121,6 +128,8 @@ class TrainConfig:
             raise ValidationError(f"network: expected 'fcn' or one of {_backbones()}, got {self.network!r}")
         if self.lam < 0 or self.lr <= 0:
             raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
+        if not 0 <= self.ema < 1:
+            raise ValidationError(f"ema: expected a decay in [0, 1) (0: the last iterate), got {self.ema}")
         if self.label_weight < 0 or self.label_decay not in ("none", "linear"):
             raise ValidationError(f"TrainConfig: expected label_weight >= 0 and label_decay 'none' or 'linear', "
                                   f"got {self.label_weight}, {self.label_decay!r}")
@@ -139,6 +148,9 @@ class TrainConfig:
     def lr_at(self, iteration: int) -> float:
         local = iteration if iteration < self.phase_boundary else iteration - self.phase_boundary
         return self.lr * self.lr_decay ** (local // self.lr_step)
+
+
+_DEFAULTS = dataclasses.asdict(TrainConfig())
 
 
 def _backbones() -> tuple[str, ...]:
@@ -291,6 +303,11 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     if config.network != "fcn":
         log.info("PRN-CNN backbone: %s", model.initialisation)
     opt = adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    averaged = None
+    if config.ema > 0:
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        averaged = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema), use_buffers=True)
     start, history = 0, []
     out = Path(out_dir) if out_dir is not None else None
     ckpt_path = out / "checkpoint.pt" if out is not None else None
@@ -298,11 +315,13 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         out.mkdir(parents=True, exist_ok=True)
     if ckpt_path is not None and resume and ckpt_path.exists():
         state = torch.load(ckpt_path, map_location=device, weights_only=False)
-        if state["config"] != dataclasses.asdict(config):
+        if {**_DEFAULTS, **state["config"]} != dataclasses.asdict(config):  # fields added later: their defaults
             raise ValidationError(f"{ckpt_path}: the checkpoint was made with another configuration; use another "
                                   "output folder or resume=False")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        if averaged is not None:
+            averaged.load_state_dict(state["ema"])
         start, history = state["iteration"], state["history"]
         rng.bit_generator.state = state["numpy_rng"]
         restore_rng_state(state, device)
@@ -390,6 +409,8 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             raise TrainingError(f"the loss became {loss.item()} at iteration {it}{where}; lower the learning rate "
                                 "or check the inputs for NaN")
         opt.step()
+        if averaged is not None:
+            averaged.update_parameters(model)
         if logged:
             entry = {"iteration": it + 1, "loss": loss.item(), "lr": config.lr_at(it)}
             if objective is None:  # the PR loss's two terms
@@ -400,8 +421,11 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
         if ckpt_path is not None and at_checkpoint:
             atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
                           "history": history, "config": dataclasses.asdict(config),
-                          "numpy_rng": rng.bit_generator.state, **rng_state(device)}, ckpt_path)
+                          "numpy_rng": rng.bit_generator.state, **rng_state(device),
+                          **({"ema": averaged.state_dict()} if averaged is not None else {})}, ckpt_path)
     bar.close()
+    if averaged is not None:
+        model = averaged.module
     seconds = time.perf_counter() - t_begin
     run = max(end - start, 0)
     if out is not None and end == config.iterations:
