@@ -28,8 +28,8 @@ def _network(split: Split, ctx: RunContext) -> str:
 
 def cache_config(config) -> dict:
     """A :class:`~prn.train.TrainConfig` as a cache key: its fields, but the later ones (missing points' data term
-    and normalisation, pseudo-labels, weight averaging) only where they are not the default (so that models cached before the
-    options existed stay valid)."""
+    and normalisation, pseudo-labels, weight averaging) only where they are not the default (so that models cached
+    before the options existed stay valid)."""
     out = dataclasses.asdict(config)
     for name, default in (("missing_in_loss", True), ("missing_normalise", "all"), ("label_weight", 0.0),
                           ("label_decay", "none"), ("ema", 0.0)):
@@ -163,8 +163,8 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
 
 def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tuple[list[np.ndarray], dict]:
     """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
-    weak-perspective ones), one `(F, P, 3)` array per training sequence, and their cache key; the label summary
-    goes to ``ctx.timings``."""
+    weak-perspective ones, each frame scaled to a unit xy norm when ``ctx.label_frames`` is "unit"), one `(F, P, 3)`
+    array per training sequence, and their cache key; the label summary goes to ``ctx.timings``."""
     from baselines.labels import code_version, make_labels
     from prn.data import unit_frames
 

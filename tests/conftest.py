@@ -1,4 +1,4 @@
-"""Shared fixtures. Real-data tests read ``$NRSFM_DATA`` (the ``real_data`` fixture) and are skipped when it is absent."""
+"""Shared fixtures. Real-data tests read ``$NRSFM_DATA`` (the ``real_data`` fixture), skipped when it is absent."""
 
 from __future__ import annotations
 

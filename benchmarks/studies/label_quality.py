@@ -56,10 +56,10 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     from baselines.labels import _MIRROR, _cache_folder, _cut_path, multiview_cuts, resolve_reflections, solve_cuts
     from baselines.labels import label_errors_per_frame
-    from prn.data import unit_frames
     from nrsfm.datasets import find_dataset, h36m
     from nrsfm.errors import ValidationError
     from nrsfm.io import read_npz
+    from prn.data import unit_frames
 
     if args.every < 1:
         raise ValidationError(f"--every: expected an integer >= 1, got {args.every}")

@@ -156,18 +156,3 @@ def test_labels_cli_fails_when_every_cut_fails(tmp_path, capsys, monkeypatch):
     code = labels.main(["--method", "csf2", "--out", str(tmp_path), "--no-progress", "--jobs", "1"])
     err = capsys.readouterr().err
     assert code == 1 and "every one of the 20 cuts failed" in err and "SolverError" in err
-
-
-
-def test_unit_frames_centres_and_scales_every_frame_to_a_unit_xy_norm():
-    from prn.data import unit_frames
-
-    seq = human_sequences(("S1",), ("walking",), projection="perspective", n_frames=12, takes=1)[0]
-    seq = seq.to_weak_perspective()
-    unit = unit_frames(seq)
-    np.testing.assert_allclose(unit.points_2d.mean(axis=1), 0.0, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(unit.points_2d.reshape(seq.n_frames, -1), axis=1), 1.0, rtol=1e-9)
-    centred = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
-    ratio = np.linalg.norm(centred.reshape(seq.n_frames, -1), axis=1)
-    np.testing.assert_allclose(unit.points_2d * ratio[:, None, None], centred, rtol=1e-9, atol=1e-12)
-    assert unit.name == seq.name and unit.meta == seq.meta  # the cuts see the same recordings and cameras

@@ -6,7 +6,7 @@ import torch
 
 from nrsfm.datasets.synthetic import human_sequences
 from nrsfm.errors import ValidationError
-from prn.data import build_training_set, denormalize, normalize_2d, normalize_3d
+from prn.data import build_training_set, denormalize, normalize_2d, normalize_3d, unit_frames
 from prn.model import PRNCNN, PRNFCN
 from prn.train import TrainConfig, TrainingError, load_model, predict, train
 
@@ -25,6 +25,18 @@ def test_normalisation_roundtrip():
     y, s3 = normalize_3d(seq.points_3d)
     np.testing.assert_allclose(s, s3)  # orthographic GT: the same xy norm
     np.testing.assert_allclose(denormalize(y, seq.points_3d), seq.points_3d - seq.points_3d.mean(1, keepdims=True))
+
+
+def test_unit_frames_centres_and_scales_every_frame_to_a_unit_xy_norm():
+    seq = human_sequences(("S1",), ("walking",), projection="perspective", n_frames=12, takes=1)[0]
+    seq = seq.to_weak_perspective()
+    unit = unit_frames(seq)
+    np.testing.assert_allclose(unit.points_2d.mean(axis=1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(unit.points_2d.reshape(seq.n_frames, -1), axis=1), 1.0, rtol=1e-9)
+    centred = seq.points_2d - seq.points_2d.mean(axis=1, keepdims=True)
+    ratio = np.linalg.norm(centred.reshape(seq.n_frames, -1), axis=1)
+    np.testing.assert_allclose(unit.points_2d * ratio[:, None, None], centred, rtol=1e-9, atol=1e-12)
+    assert unit.name == seq.name and unit.meta == seq.meta  # the cuts see the same recordings and cameras
 
 
 def test_test_inputs_normalised_on_visible_points_or_on_all_as_a_training_sample_drops_them(small_set):
