@@ -35,6 +35,8 @@ def cache_config(config) -> dict:
                           ("label_decay", "none"), ("ema", 0.0)):
         if out[name] == default:
             del out[name]
+    if "ema" in out:  # the average spans the steps after the BN freeze and keeps the frozen statistics
+        out["ema_from"] = "bn-freeze"
     return out
 
 

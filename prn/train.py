@@ -76,11 +76,15 @@ class TrainConfig:
     lowers its weight linearly to 0 at the last iteration, so that the PR loss
     alone shapes the end of training; ``"none"`` keeps it.
 
-    ``ema`` in (0, 1) keeps an exponential moving average of the weights and BN
-    statistics, ``A <- ema * A + (1 - ema) * W`` after every step (from the
-    first), and returns and saves it instead of the last iterate: the average
-    of the last ``~1 / (1 - ema)`` iterations, less tied to the last
-    minibatches. 0 (the default, the paper's) keeps the last iterate.
+    ``ema`` in (0, 1) keeps an exponential moving average of the weights,
+    ``A <- ema * A + (1 - ema) * W`` after every step from the BN freeze on
+    (``phase_boundary``; the first such step copies), and returns and saves it
+    instead of the last iterate: the average of the last ``~1 / (1 - ema)``
+    iterations, less tied to the last minibatches. Every averaged step was
+    trained against the same frozen BN statistics, which the average keeps;
+    averaging the statistics too, or recomputing them from the data, does not
+    match weights that were tuned to the frozen ones. 0 (the default, the
+    paper's) keeps the last iterate.
 
     ``network``: ``"fcn"`` (PRN-FCN on 2D points) or a torchvision backbone
     name (:data:`prn.images.BACKBONES`, ``"resnet50"`` as the paper) for
@@ -130,6 +134,10 @@ class TrainConfig:
             raise ValidationError(f"TrainConfig: expected lam >= 0 and lr > 0, got {self.lam}, {self.lr}")
         if not 0 <= self.ema < 1:
             raise ValidationError(f"ema: expected a decay in [0, 1) (0: the last iterate), got {self.ema}")
+        if self.ema > 0 and self.phase_boundary >= self.iterations:
+            raise ValidationError(f"ema: the weights are averaged after the BN freeze, and bn_freeze_fraction "
+                                  f"{self.bn_freeze_fraction} of {self.iterations} iterations leaves none; raise "
+                                  "bn_freeze_fraction or set ema=0")
         if self.label_weight < 0 or self.label_decay not in ("none", "linear"):
             raise ValidationError(f"TrainConfig: expected label_weight >= 0 and label_decay 'none' or 'linear', "
                                   f"got {self.label_weight}, {self.label_decay!r}")
@@ -307,7 +315,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
     if config.ema > 0:
         from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-        averaged = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema), use_buffers=True)
+        averaged = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema), use_buffers=False)
     start, history = 0, []
     out = Path(out_dir) if out_dir is not None else None
     ckpt_path = out / "checkpoint.pt" if out is not None else None
@@ -409,7 +417,7 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
             raise TrainingError(f"the loss became {loss.item()} at iteration {it}{where}; lower the learning rate "
                                 "or check the inputs for NaN")
         opt.step()
-        if averaged is not None:
+        if averaged is not None and it >= config.phase_boundary:
             averaged.update_parameters(model)
         if logged:
             entry = {"iteration": it + 1, "loss": loss.item(), "lr": config.lr_at(it)}
@@ -424,7 +432,10 @@ def _train(data: TrainingSet, config: TrainConfig, out_dir, *, resume: bool, pro
                           "numpy_rng": rng.bit_generator.state, **rng_state(device),
                           **({"ema": averaged.state_dict()} if averaged is not None else {})}, ckpt_path)
     bar.close()
-    if averaged is not None:
+    if averaged is not None and averaged.n_averaged.item() > 0:
+        with torch.no_grad():  # the frozen BN statistics every averaged step was trained with
+            for name, buf in model.named_buffers():
+                averaged.module.get_buffer(name).copy_(buf)
         model = averaged.module
     seconds = time.perf_counter() - t_begin
     run = max(end - start, 0)

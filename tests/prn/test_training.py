@@ -167,24 +167,30 @@ def test_training_reduces_the_loss_and_checkpoints_resume(small_set, tmp_path, m
     np.testing.assert_allclose(predict(model, x, w), predict(full.model, x, w), atol=1e-6)
 
 
-def test_ema_returns_the_moving_average_of_the_weights_and_resumes(small_set, tmp_path):
-    cfg = TrainConfig(iterations=3, width=32, lr=1e-2, checkpoint_every=1, group_size=8, groups=2, ema=0.75)
+def test_ema_averages_the_weights_after_the_bn_freeze_keeps_its_statistics_and_resumes(small_set, tmp_path):
+    cfg = TrainConfig(iterations=4, width=32, lr=1e-2, checkpoint_every=1, group_size=8, groups=2, ema=0.75,
+                      bn_freeze_fraction=0.5)  # BN freezes at iteration 2: steps 3 and 4 are averaged
     seen = []
-    for stop in (1, 1, 1):  # one iteration a call; each checkpoint holds that iteration's live weights
-        res = train(small_set, cfg, tmp_path / "e", progress=False, stop_after=stop)
+    for _ in range(4):  # one iteration a call; each checkpoint holds that iteration's live weights
+        res = train(small_set, cfg, tmp_path / "e", progress=False, stop_after=1)
         seen.append(torch.load(tmp_path / "e" / "checkpoint.pt", weights_only=False)["model"])
-    w1, w2, w3 = seen
+    w3, w4 = seen[2], seen[3]
+    buffers = {name for name, _ in res.model.named_buffers()}
+    assert any(name.endswith("running_var") for name in buffers)
     for k, v in res.model.state_dict().items():
-        if k.endswith("num_batches_tracked"):
-            continue
-        expected = 0.75 * (0.75 * w1[k] + 0.25 * w2[k]) + 0.25 * w3[k]  # the first step copies
-        torch.testing.assert_close(v, expected.to(v.dtype), msg=k)
+        if k in buffers:  # the statistics frozen at iteration 2, which steps 3 and 4 trained with
+            torch.testing.assert_close(v, w4[k], msg=k)
+            torch.testing.assert_close(v, w3[k], msg=k)
+        else:  # the first averaged step copies
+            torch.testing.assert_close(v, (0.75 * w3[k] + 0.25 * w4[k]).to(v.dtype), msg=k)
     last = train(small_set, dataclasses.replace(cfg, ema=0.0), tmp_path / "l", progress=False)
     for k, v in last.model.state_dict().items():  # the same trajectory; without averaging, its last iterate
-        torch.testing.assert_close(v, w3[k], msg=k)
+        torch.testing.assert_close(v, w4[k], msg=k)
     assert not torch.allclose(next(res.model.parameters()), next(last.model.parameters()))
     with pytest.raises(ValidationError, match="ema"):
         TrainConfig(ema=1.0)
+    with pytest.raises(ValidationError, match="bn_freeze_fraction"):
+        TrainConfig(ema=0.9, bn_freeze_fraction=0.0)
 
 
 def test_nan_loss_stops_with_a_clear_error(small_set, tmp_path):
