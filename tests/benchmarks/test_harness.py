@@ -675,6 +675,38 @@ def test_c3dpo_fit_scores_each_named_subject_in_both_protocols(tmp_path, monkeyp
         c3dpo_fit.subject_rows(model, tmp_path, ["S11"], "gt-ortho", 1, unit, "centred")
 
 
+def test_model_average_scores_each_model_its_last_iterate_and_their_mean(tmp_path, capsys):
+    """The study's score of a cached model is the harness's; a run with ``ema`` is scored beside the live weights
+    of its last checkpoint; the mean of two models' predictions is scored last; a folder without a model is a
+    clear error."""
+    import dataclasses
+
+    from benchmarks.methods import prn_fcn
+    from benchmarks.registry import RunContext, Split
+    from benchmarks.studies import model_average
+    from benchmarks.table1 import evaluate, evaluate_c3dpo
+    from nrsfm.datasets.synthetic import human_sequences
+
+    seqs = human_sequences(["S1", "S9"], n_frames=20, takes=1, seed=0, motions=("walking",))
+    train, test = ([s for s in seqs if s.meta["subject"] == subject] for subject in ("S1", "S9"))
+    split = Split(train, train, test, test, "gt-ortho", tag="tiny-average")
+    ctx = RunContext(out_dir=tmp_path, iterations=10, progress=False, width=32, group_size=4, device="cpu")
+    plain = prn_fcn(split, ctx)
+    averaged = prn_fcn(split, dataclasses.replace(ctx, ema=0.5))
+    runs = sorted((tmp_path / "cache").glob("PRN-FCN-*"), key=lambda r: json.loads((r / "train.json").read_text())["config"]["ema"])
+    rows = model_average.average_rows(runs, test)
+    assert [r[0] for r in rows] == [runs[0].name, runs[1].name, f"{runs[1].name}, its last iterate",
+                                    "mean of the 2 models' predictions"]
+    for (_, prn, c3), preds in zip(rows[:2], (plain, averaged)):
+        assert prn == pytest.approx(evaluate(preds, test)["Avg"][0], rel=1e-6)
+        assert c3 == pytest.approx(evaluate_c3dpo(preds, test)["Avg"][0], rel=1e-6)
+    assert rows[2][1] != pytest.approx(rows[1][1], rel=1e-9)  # the average is not the last iterate
+    mean = [(a + b) / 2 for a, b in zip(plain, averaged)]
+    assert rows[3][1] == pytest.approx(evaluate(mean, test)["Avg"][0], rel=1e-6)
+    assert model_average.main([str(tmp_path)]) == 2
+    assert "holding model.pt" in capsys.readouterr().err
+
+
 def test_checkpoint_progress_reads_where_a_training_got_to(tmp_path):
     import torch
 
