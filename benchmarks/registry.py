@@ -125,7 +125,7 @@ class RunContext:
     label_solver: str = "pr"  # PRN-L: the solver of its pseudo-labels
     label_weight: float = 1.0  # PRN-L: the labels' weight beside the PR loss (prn.train.TrainConfig.label_weight)
     label_decay: str = "none"  # PRN-L: "none" (chosen on S8 held out) or "linear" (to 0 at the end of training)
-    ema: float = 0.0  # the networks' weight averaging (prn.train.TrainConfig.ema; 0: the last iterate)
+    ema: float | None = None  # the networks' weight averaging (prn.train.TrainConfig.ema); None: each row's own
     label_frames: str = "as-is"  # "+NN" rows and PRN-L: solve the 2D as it is, or "unit" (prn.data.unit_frames)
     network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
     labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")

@@ -34,7 +34,7 @@ import numpy as np
 
 from benchmarks.common import (add_training_arguments, choose_data, labels_dir, markdown_table, run_metadata,
                                run_table, write_csv, write_json)
-from benchmarks.methods import C3DPO_INPUTS, methods
+from benchmarks.methods import C3DPO_INPUTS, PRN_L_EMA, methods
 from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, RunContext, Split, millimetres,
                                  schedule_text)
 from nrsfm.datasets import h36m
@@ -284,8 +284,9 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                    help="PRN-L and the +NN rows: solve each training frame's 2D as it is (default) or centred and "
                         "scaled to a unit xy norm first (weak-perspective tracks change scale with depth and camera)")
     p.add_argument("--ema", type=float, default=RunContext.ema,
-                   help="the networks return an exponential moving average of their weights with this decay per "
-                        "iteration (prn.train.TrainConfig.ema; default 0: the last iterate, as the paper)")
+                   help="the networks return an exponential moving average of their weights after the BN freeze, "
+                        "with this decay per iteration (prn.train.TrainConfig.ema; 0: the last iterate; default: "
+                        f"{PRN_L_EMA} for PRN-L, chosen on S8 held out, 0 for the other rows, as the paper)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -359,7 +360,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
         raise ValidationError(f"--c3dpo-lr: expected a learning rate > 0, got {args.c3dpo_lr}")
     if args.c3dpo_repeat < 1:
         raise ValidationError(f"--c3dpo-repeat: expected >= 1, got {args.c3dpo_repeat}")
-    if not 0 <= args.ema < 1:
+    if args.ema is not None and not 0 <= args.ema < 1:
         raise ValidationError(f"--ema: expected a decay in [0, 1) (0: the last iterate), got {args.ema}")
     if not args.label_weight >= 0:
         raise ValidationError(f"--label-weight: expected a weight >= 0, got {args.label_weight}")

@@ -2,6 +2,7 @@
 
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +10,7 @@ import scipy.io
 
 from benchmarks import classic, defaults, table1
 from benchmarks.common import Interrupted, parse_fractions, run_cells
+from benchmarks.methods import PRN_L_EMA
 from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_iterations,
                                 pr_sweep, reference_trust, spm_cameras, spm_shape)
 from nrsfm import load_sequence, solve
@@ -85,6 +87,9 @@ def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path,
     timings = data["meta"]["timings"]
     first, second = timings[f"PR + NN ({inp})"]["labels"], timings[f"PRN-L ({inp})"]["labels"]
     assert second["reused"] == second["cuts"] > 0  # PRN-L read PR + NN's labels back
+    ema = {name: json.loads((Path(timings[f"{name} ({inp})"]["cache"]) / "train.json").read_text())["config"]["ema"]
+           for name in ("PR + NN", "PRN-L")}
+    assert ema == {"PR + NN": 0.0, "PRN-L": PRN_L_EMA}  # PRN-L averages its weights; the +NN rows keep the last
     assert 1 < first["label_mpjpe_mm"] < 1000  # scored in millimetres, not in the weak-perspective tracks' units
     assert first["failed"] == 0 and first["labelled_frames"] == first["frames"]
     assert (first["unlabelled_points"] == first["frames"]) == (inp == "sh")
@@ -94,6 +99,17 @@ def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path,
     assert unit["dataset"].endswith("-unit-frames") and unit["reused"] == 0  # solved again, cached apart
     assert unit["frames_solved"] == "unit" and 1 < unit["label_mpjpe_mm"] < 1000
     assert "unit frames" in (tmp_path / "u" / "table1.md").read_text()
+
+
+def test_the_rows_average_their_weights_as_each_row_says_unless_told():
+    from benchmarks.methods import _config
+    from benchmarks.registry import RunContext
+
+    ctx = RunContext(out_dir=Path("unused"), iterations=100)
+    assert _config(ctx, "fcn", 0.05).ema == 0.0 and _config(ctx, "fcn", 0.05, ema=PRN_L_EMA).ema == PRN_L_EMA
+    told = RunContext(out_dir=Path("unused"), iterations=100, ema=0.0)
+    assert _config(told, "fcn", 0.05, ema=PRN_L_EMA).ema == 0.0
+    assert 0 < PRN_L_EMA < 1
 
 
 def test_table1_quick_computes_every_row_with_the_baselines(tmp_path, capsys, monkeypatch):
