@@ -60,7 +60,10 @@ def test_table1_validate_holds_a_training_subject_out_and_evaluates_on_it(tmp_pa
     monkeypatch.setattr(table1, "SYNTHETIC_FRAMES", 40)
     out = tmp_path / "v"
     args = ["--iterations", "12", "--out", str(out), "--no-progress", "--methods", "PRN-FCN", "--validate", "S8"]
+    commits = iter(["the commit at the start", "a later commit"])
+    monkeypatch.setattr(table1, "git_hash", lambda: next(commits))
     assert table1.main(args) == 0
+    assert json.loads((out / "table1.json").read_text())["meta"]["git"] == "the commit at the start"
     text = capsys.readouterr().out
     assert "validation S8 (a training subject held out of training; no test subject used)" in text
     assert "(paper" not in text and "66.7" not in text  # the paper's test numbers are not set beside it
