@@ -40,9 +40,8 @@ def cache_config(config) -> dict:
     return out
 
 
-#: PRN-L's weight average (:attr:`prn.train.TrainConfig.ema`), chosen on S8 held out (train S1, S5-S7, GT-ortho,
-#: 8,000 iterations, seeds 0 and 1: 60.1 / 59.2 mm against the same runs' last iterates 60.1 / 65.0). The other
-#: rows keep the paper's last iterate.
+#: PRN-L's weight average (:attr:`prn.train.TrainConfig.ema`), chosen on S8 held out against the same runs' last
+#: iterates (benchmarks/RESULTS.md, PRN-L). The other rows keep the paper's last iterate.
 PRN_L_EMA = 0.999
 
 
@@ -53,7 +52,8 @@ def _config(ctx: RunContext, network: str, lam: float, ema: float = 0.0, **extra
     if ctx.missing_points > 0:
         missing["missing_normalise"] = ctx.normalise_on
     return schedule(ctx.iterations, ctx.compress_schedule, lam=lam, seed=ctx.seed, device=ctx.device, width=ctx.width,
-                    groups=ctx.groups, group_size=ctx.group_size, network=network, ema=ema if ctx.ema is None else ctx.ema, **missing, **extra)
+                    groups=ctx.groups, group_size=ctx.group_size, network=network,
+                    ema=ema if ctx.ema is None else ctx.ema, **missing, **extra)
 
 
 def _predict(model, data, split: Split, ctx: RunContext) -> Predictions:
