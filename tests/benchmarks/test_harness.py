@@ -712,7 +712,8 @@ def test_model_average_scores_each_model_its_last_iterate_and_their_mean(tmp_pat
     ctx = RunContext(out_dir=tmp_path, iterations=10, progress=False, width=32, group_size=4, device="cpu")
     plain = prn_fcn(split, ctx)
     averaged = prn_fcn(split, dataclasses.replace(ctx, ema=0.5))
-    runs = sorted((tmp_path / "cache").glob("PRN-FCN-*"), key=lambda r: json.loads((r / "train.json").read_text())["config"]["ema"])
+    runs = sorted((tmp_path / "cache").glob("PRN-FCN-*"),
+                  key=lambda r: json.loads((r / "train.json").read_text())["config"]["ema"])  # the plain run first
     rows = model_average.average_rows(runs, test)
     assert [r[0] for r in rows] == [runs[0].name, runs[1].name, f"{runs[1].name}, its last iterate",
                                     "mean of the 2 models' predictions"]
