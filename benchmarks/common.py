@@ -173,13 +173,19 @@ def git_hash() -> str:
         return "unknown"
 
 
+#: The commit a :func:`run_table` run started from: the code that runs, though the checkout may move on before
+#: the run ends.
+_started_from: str | None = None
+
+
 def run_metadata(**extra: Any) -> dict[str, Any]:
-    """Versions, git hash, machine and time, plus ``extra`` (parameters, seeds, data)."""
+    """Versions, git hash (the one a :func:`run_table` run started from), machine and time, plus ``extra``
+    (parameters, seeds, data)."""
     import numpy
     import scipy
 
     meta: dict[str, Any] = {
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "git": git_hash(), "python": platform.python_version(),
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "git": _started_from or git_hash(), "python": platform.python_version(),
         "numpy": numpy.__version__, "scipy": scipy.__version__, "machine": platform.machine(),
         "cpus": os.cpu_count(),
     }
@@ -321,9 +327,13 @@ def run_table(name: str, run: Callable[[argparse.Namespace], int], args: argpars
     """``run(args)`` with INFO logging on stderr; bad input ends in one line ``<name>: error: ...`` and status 2."""
     from nrsfm.errors import NRSfMError
 
+    global _started_from
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+    _started_from = git_hash()
     try:
         return run(args)
     except (NRSfMError, FileNotFoundError, ValueError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        _started_from = None

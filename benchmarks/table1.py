@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (add_training_arguments, choose_data, git_hash, labels_dir, markdown_table,
-                               run_metadata, run_table, write_csv, write_json)
+from benchmarks.common import (add_training_arguments, choose_data, labels_dir, markdown_table, run_metadata,
+                               run_table, write_csv, write_json)
 from benchmarks.methods import C3DPO_INPUTS, PRN_L_EMA, methods
 from benchmarks.registry import (QUICK_LABEL_PARAMS, NotRun, RunContext, Split, millimetres,
                                  schedule_text)
@@ -406,7 +406,6 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
 
 def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
-    commit = git_hash()  # the code that runs, though the checkout may move on before the run ends
     notice = data_notice(args)
     if notice:
         print(notice, flush=True)
@@ -443,7 +442,7 @@ def _run(args: argparse.Namespace) -> int:
     text = "\n".join(md)
     print(text)
     total = time.perf_counter() - t_start
-    meta = run_metadata(git=commit, table="PRN Table 1", metric="MPJPE (mm), PRN and C3DPO protocols", data=desc,
+    meta = run_metadata(table="PRN Table 1", metric="MPJPE (mm), PRN and C3DPO protocols", data=desc,
                         inputs=list(inputs), protocols=PROTOCOL_TEXT,
                         schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,

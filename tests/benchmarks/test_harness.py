@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from benchmarks import classic, defaults, table1
+from benchmarks import classic, common, defaults, table1
 from benchmarks.common import Interrupted, parse_fractions, run_cells
 from benchmarks.methods import PRN_L_EMA
 from benchmarks.studies import (auto_k, consensus_weight, csf2_model, empnd_starts, k_reference, pr_iterations,
@@ -61,7 +61,7 @@ def test_table1_validate_holds_a_training_subject_out_and_evaluates_on_it(tmp_pa
     out = tmp_path / "v"
     args = ["--iterations", "12", "--out", str(out), "--no-progress", "--methods", "PRN-FCN", "--validate", "S8"]
     commits = iter(["the commit at the start", "a later commit"])
-    monkeypatch.setattr(table1, "git_hash", lambda: next(commits))
+    monkeypatch.setattr(common, "git_hash", lambda: next(commits))
     assert table1.main(args) == 0
     assert json.loads((out / "table1.json").read_text())["meta"]["git"] == "the commit at the start"
     text = capsys.readouterr().out
