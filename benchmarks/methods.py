@@ -174,7 +174,9 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
 def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tuple[list[np.ndarray], dict]:
     """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
     weak-perspective ones, each frame scaled to a unit xy norm when ``ctx.label_frames`` is "unit"), one `(F, P, 3)`
-    array per training sequence, and their cache key; the label summary goes to ``ctx.timings``."""
+    array per training sequence, and their cache key; the label summary goes to ``ctx.timings``. Solvers joined by
+    "+" (``"pr+empnd"``) give the equal-weight mean of their label sets (:mod:`baselines.label_mix`)."""
+    from baselines.label_mix import mix_labels, parse_label_solvers
     from baselines.labels import code_version, make_labels
     from prn.data import unit_frames
 
@@ -182,9 +184,11 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
     dataset = split.labels_tag or split.tag
     if ctx.label_frames == "unit":
         tracks, dataset = [unit_frames(s) for s in tracks], dataset + "-unit-frames"
-    labels = make_labels(tracks, solver, ctx.label_params.get(solver),
-                         out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=dataset,
-                         jobs=ctx.jobs, progress=ctx.progress, truth=split.train_targets)
+    sets = [make_labels(tracks, part, ctx.label_params.get(part),
+                        out_dir=ctx.labels_dir or ctx.out_dir / "labels", dataset=dataset,
+                        jobs=ctx.jobs, progress=ctx.progress, truth=split.train_targets)
+            for part in parse_label_solvers(solver)]
+    labels = sets[0] if len(sets) == 1 else mix_labels(sets, truth=split.train_targets)
     s = labels.summary
     s["label_mpjpe_mm"], s["frames_solved"] = s["label_mpjpe"], ctx.label_frames
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s (the ground "
@@ -193,6 +197,8 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
              f"{s['label_mpjpe_mm']:.1f}" if s["label_mpjpe_mm"] is not None else "-", s["seconds"])
     ctx.timings.setdefault(f"{name} ({split.input_type})", {})["labels"] = s
     key = {"solver": solver, "params": s["params"], "code": code_version(), "gap": s["gap"]}
+    if "weights" in s:
+        key["weights"] = s["weights"]
     if ctx.label_frames != "as-is":
         key["frames"] = ctx.label_frames
     return labels.labels, key

@@ -273,7 +273,8 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                         "same scale of the ground truth; default), centred (centred, every frame divided by one "
                         "global scale) or prn (each frame divided by its own xy norm, as the other rows)")
     p.add_argument("--label-solver", default=RunContext.label_solver,
-                   help=f"PRN-L: the per-sequence solver of its pseudo-labels (default {RunContext.label_solver})")
+                   help=f"PRN-L: the per-sequence solver of its pseudo-labels (default {RunContext.label_solver}); "
+                        "solvers joined by '+' (pr+empnd) give the equal-weight mean of their labels")
     p.add_argument("--label-weight", type=float, default=RunContext.label_weight,
                    help=f"PRN-L: the pseudo-labels' weight beside the PR loss (default {RunContext.label_weight:g}, "
                         "chosen on S8 held out; benchmarks/RESULTS.md)")
@@ -308,8 +309,14 @@ def data_notice(args: argparse.Namespace) -> str | None:
 
 
 def _label_parameters(summary: dict) -> str:
-    """The label table's "parameters" cell: the solver's, and how the frames were solved when not as they are."""
-    parts = [f"{a}={b}" for a, b in summary["params"].items()]
+    """The label table's "parameters" cell: the solver's (each mixed solver's, and the weights), and how the
+    frames were solved when not as they are."""
+    if "weights" in summary:
+        parts = [f"{m}: {', '.join(f'{a}={b}' for a, b in p.items()) or 'defaults'}"
+                 for m, p in summary["params"].items()]
+        parts.append("weights " + " / ".join(f"{w:.2f}" for w in summary["weights"]))
+    else:
+        parts = [f"{a}={b}" for a, b in summary["params"].items()]
     if summary.get("frames_solved", "as-is") != "as-is":
         parts.append(f"{summary['frames_solved']} frames")
     return ", ".join(parts) or "defaults"
@@ -366,8 +373,11 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
         raise ValidationError(f"--label-weight: expected a weight >= 0, got {args.label_weight}")
     from nrsfm.solvers.registry import available_solvers
 
-    if args.label_solver not in available_solvers():
-        raise ValidationError(f"--label-solver: expected one of {available_solvers()}, got {args.label_solver!r}")
+    from baselines.label_mix import parse_label_solvers
+
+    if not all(name in available_solvers() for name in parse_label_solvers(args.label_solver)):
+        raise ValidationError(f"--label-solver: expected one of {available_solvers()}, or several joined by '+' "
+                              f"(their labels' mean, e.g. pr+empnd), got {args.label_solver!r}")
     if args.jobs < 1 or args.c3dpo_batch < 2:
         raise ValidationError(f"--jobs and --c3dpo-batch: expected >= 1 and >= 2, got {args.jobs}, {args.c3dpo_batch}")
     ctx = RunContext(out_dir=out, labels_dir=labels_dir(args), iterations=iterations, seed=args.seed,

@@ -872,3 +872,20 @@ def test_direct_rows_take_the_quick_settings_and_refuse_unknown_ones():
     assert out.millimetres[0].shape == (20, 12, 3) and np.isfinite(out.millimetres[0]).all()
     with pytest.raises(ValidationError, match="max_iterations"):
         solve_directly(split, "pr", params={"max_iterations": 5})
+
+
+def test_prn_l_trains_on_the_mean_of_two_solvers_labels(tmp_path, capsys, monkeypatch):
+    """``--label-solver pr+empnd``: both label sets solved (and cached), mixed, scored, and named in the table."""
+    monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1",))
+    out = tmp_path / "m"
+    args = ["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
+            "--input", "gt-ortho", "--methods", "PRN-L", "--label-solver", "pr+empnd"]
+    assert table1.main(args) == 0
+    labels = json.loads((out / "table1.json").read_text())["meta"]["timings"]["PRN-L (gt-ortho)"]["labels"]
+    assert labels["method"] == "pr+empnd" and labels["weights"] == [0.5, 0.5]
+    assert [c["method"] for c in labels["components"]] == ["pr", "empnd"]
+    assert labels["labelled_frames"] == labels["frames"] and 1 < labels["label_mpjpe_mm"] < 1000
+    assert "weights 0.50 / 0.50" in (out / "table1.md").read_text()
+    capsys.readouterr()
+    assert table1.main(args[:-1] + ["pr+bogus"]) == 2
+    assert "--label-solver: expected one of" in capsys.readouterr().err
