@@ -211,8 +211,8 @@ def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.n
 
 
 @register_method("PRN-L", ("gt-ortho", "gt-persp", "sh"),
-                 "PRN-FCN trained with the PR loss and a pull towards per-sequence NRSfM pseudo-labels (PR's by "
-                 "default): no 3D ground truth")
+                 "PRN-FCN trained with the PR loss and a pull towards per-sequence NRSfM pseudo-labels (EM-PND's "
+                 "by default): no 3D ground truth")
 def prn_l(split: Split, ctx: RunContext) -> list[np.ndarray]:
     from baselines.supervised import normalised_targets
 

@@ -122,7 +122,7 @@ class RunContext:
     groups: int = 4  # PRN rows: alignment groups per minibatch (4 on Human3.6M and SURREAL; 1 on 300-VW's faces)
     group_size: int = 32  # frames per group (4 x 32 = 1 x 128: PRN's minibatch)
     label_params: dict = field(default_factory=dict)  # "+NN" rows: solver name -> its parameters for the labels
-    label_solver: str = "pr"  # PRN-L: the solver of its pseudo-labels
+    label_solver: str = "empnd"  # PRN-L: the solver of its pseudo-labels (chosen on S8 held out: RESULTS.md)
     label_weight: float = 1.0  # PRN-L: the labels' weight beside the PR loss (prn.train.TrainConfig.label_weight)
     label_decay: str = "none"  # PRN-L: "none" (chosen on S8 held out) or "linear" (to 0 at the end of training)
     ema: float | None = None  # the networks' weight averaging (prn.train.TrainConfig.ema); None: each row's own
