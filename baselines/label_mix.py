@@ -16,10 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from baselines.labels import LabelSet, label_error, labelled_frames
+from baselines.labels import _MIRROR, LabelSet, label_error, labelled_frames
 from nrsfm.errors import ValidationError
-
-_MIRROR = np.array([1.0, 1.0, -1.0])
 
 
 def parse_label_solvers(text: str) -> list[str]:
