@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from baselines.labels import _MIRROR, LabelSet, label_error, labelled_frames, unlabelled_points
+from baselines.labels import _MIRROR, LabelSet, label_error, labelled_frames
 from nrsfm.errors import ValidationError
 
 
@@ -95,7 +95,8 @@ def mix_labels(sets: list[LabelSet], weights=None, truth: list | None = None) ->
                "params": {s.summary["method"]: s.summary["params"] for s in sets},
                "weights": (weights / weights.sum()).tolist(), "failed": len(failed),
                "labelled_frames": labelled,
-               "unlabelled_points": unlabelled_points(labels),
+               "unlabelled_points": int(sum((~np.isfinite(lab[labelled_frames(lab)]).all(axis=2)).sum()
+                                            for lab in labels)),
                "seconds": float(sum(s.summary["seconds"] for s in sets)),
                "label_mpjpe": label_error(labels, truth) if truth is not None else None,
                "components": [{k: s.summary[k] for k in ("method", "failed", "label_mpjpe", "seconds")}

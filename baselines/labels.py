@@ -342,9 +342,10 @@ def make_labels(sequences: list[Sequence], method: str, params: dict | None = No
             labels[i][t] = shape
     frames = int(sum(s.n_frames for s in sequences))
     labelled = int(sum(labelled_frames(lab).sum() for lab in labels))
+    unlabelled_points = int(sum((~np.isfinite(lab[labelled_frames(lab)]).all(axis=2)).sum() for lab in labels))
     summary = {"method": method, "params": dict(params or {}), "dataset": dataset, "gap": gap, "cuts": len(cuts),
                "failed": len(failed), "reused": reused, "frames": frames, "labelled_frames": labelled,
-               "unlabelled_points": unlabelled_points(labels), "mirrored": int(flips.sum()),
+               "unlabelled_points": unlabelled_points, "mirrored": int(flips.sum()),
                "seconds": time.perf_counter() - t0, "jobs": jobs, "backend": backend,
                "label_mpjpe": label_error(labels, sequences if truth is None else truth)}
     return LabelSet(labels, summary, failed)
@@ -376,11 +377,6 @@ def label_errors_per_frame(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
         raise ValidationError("label_errors_per_frame: no point is labelled in every frame")
     labels, truth = labels[:, points], truth[:, points]
     return mpjpe_prn_per_frame(denormalize(normalised_targets([labels]), truth), truth)
-
-
-def unlabelled_points(labels: list[np.ndarray]) -> int:
-    """How many (frame, point) entries of labelled frames have no label, over per-sequence `(F, P, 3)` labels."""
-    return int(sum((~np.isfinite(lab[labelled_frames(lab)]).all(axis=2)).sum() for lab in labels))
 
 
 def labelled_frames(labels: np.ndarray) -> np.ndarray:
