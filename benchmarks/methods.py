@@ -44,6 +44,13 @@ def cache_config(config) -> dict:
 #: iterates (benchmarks/RESULTS.md, PRN-L). The other rows keep the paper's last iterate.
 PRN_L_EMA = 0.999
 
+#: PRN-L averages each test frame's shape with its mirror image's (:func:`prn.train.predict_mirrored`), chosen on
+#: S8 held out (benchmarks/RESULTS.md, PRN-L); the other rows predict as the paper.
+PRN_L_MIRROR_TEST = True
+
+#: PRN-L trains on the training frames and their mirror images (:func:`prn.data.mirror_sequence`), or not.
+PRN_L_MIRROR_TRAIN = False
+
 
 def _config(ctx: RunContext, network: str, lam: float, ema: float = 0.0, **extra):
     """The PRN recipe of ``ctx`` (:func:`benchmarks.registry.schedule`): iterations, schedule, alignment groups,
@@ -56,15 +63,40 @@ def _config(ctx: RunContext, network: str, lam: float, ema: float = 0.0, **extra
                     ema=ema if ctx.ema is None else ctx.ema, **missing, **extra)
 
 
-def _predict(model, data, split: Split, ctx: RunContext) -> Predictions:
+def mirror_perms(joint_names, input_points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(input, output) mirror permutations (:func:`prn.data.mirror_permutation`) for a network whose inputs are
+    ``input_points`` of the joints (None: all), or None where the names pair no joints or an input's mirror
+    partner is no input."""
+    from prn.data import mirror_permutation
+
+    perm = mirror_permutation(joint_names)
+    if perm is None:
+        return None
+    keep = np.arange(len(perm)) if input_points is None else np.asarray(input_points)
+    pos = {int(k): i for i, k in enumerate(keep)}
+    if any(int(perm[k]) not in pos for k in keep):
+        return None
+    return np.array([pos[int(perm[k])] for k in keep]), perm
+
+
+def _predict(model, data, split: Split, ctx: RunContext, name: str = "", mirror: bool = False) -> Predictions:
     """The test predictions; inputs normalised on their visible points where training points went missing and
-    were normalised the same way, scaled back by the ground truth's statistic over those points."""
+    were normalised the same way, scaled back by the ground truth's statistic over those points. ``mirror``:
+    each frame's shape averaged with its mirror image's (:func:`prn.train.predict_mirrored`), where the joint
+    names pair left and right."""
     from prn.data import denormalize
-    from prn.train import predict, predict_images
+    from prn.train import predict, predict_images, predict_mirrored
 
     if split.input_type == "rgb":
         return Predictions(predict_images(model, im) for im in split.test_images)
-    out = Predictions(predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) for seq in split.test_inputs)
+    perms = mirror_perms(split.test_inputs[0].joint_names, data.input_points) if mirror else None
+    if mirror:
+        ctx.timings.setdefault(f"{name} ({split.input_type})", {})["mirror_test"] = perms is not None
+        if perms is None:
+            log.warning("%s: no test-time mirroring: the joint names pair no left and right joints", name)
+    out = Predictions((predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) if perms is None else
+                       predict_mirrored(model, *data.prepare_inputs(seq, ctx.normalise_on), *perms))
+                      for seq in split.test_inputs)
     if ctx.missing_points > 0 and ctx.normalise_on == "visible":
         out.millimetres = [denormalize(p, t.points_3d, s.weights > 0)
                            for p, s, t in zip(out, split.test_inputs, split.test_truth)]
@@ -76,11 +108,23 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
     """PRN (``lam`` > 0) or PRN w/o reg; ``scores``: detection scores weigh the data term; ``labels``: normalised
     pseudo-labels (one per training frame) and their cache key, pulled towards with ``ctx.label_weight`` (PRN-L,
     whose weights are averaged, :data:`PRN_L_EMA`, unless ``ctx.ema`` says otherwise)."""
-    from prn.data import build_training_set
+    from prn.data import build_training_set, mirror_points, mirror_sequence
     from prn.train import load_model, train
 
     network = _network(split, ctx)
-    data = build_training_set(split.train_inputs, split.train_targets, sampling=split.sampling,
+    inputs, targets = split.train_inputs, split.train_targets
+    mirror_train = (labels is not None and PRN_L_MIRROR_TRAIN) if ctx.mirror_train is None else ctx.mirror_train
+    if mirror_train:
+        if network != "fcn":
+            raise NotRun("--mirror-train: mirrored images are not built; train the 2D networks with it")
+        perm = mirror_perms(inputs[0].joint_names, None)
+        if perm is None:
+            raise NotRun("--mirror-train: the joint names pair no left and right joints")
+        inputs = inputs + [mirror_sequence(s, perm[1]) for s in inputs]
+        targets = None if targets is None else targets + [mirror_sequence(s, perm[1]) for s in targets]
+        if labels is not None:
+            labels = (np.concatenate([labels[0], mirror_points(labels[0], perm[1])]), {**labels[1], "mirrored": True})
+    data = build_training_set(inputs, targets, sampling=split.sampling,
                               images=split.train_images if network != "fcn" else None, scores=scores)
     extra = {} if labels is None else {"label_weight": ctx.label_weight, "label_decay": ctx.label_decay,
                                        "ema": PRN_L_EMA}
@@ -88,6 +132,8 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
     key = {"config": cache_config(config), "data": split.tag, "input": split.input_type, "frames": data.description}
     if scores:
         key["scores"] = True
+    if mirror_train:
+        key["mirror_train"] = True
     if labels is not None:
         key["labels"] = labels[1]
     cache = ctx.cache_dir(name, key)
@@ -106,7 +152,9 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
              "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
-    return _predict(model, data, split, ctx)
+    ctx.timings[f"{name} ({split.input_type})"]["mirror_train"] = mirror_train
+    mirror = (labels is not None and PRN_L_MIRROR_TEST) if ctx.mirror_test is None else ctx.mirror_test
+    return _predict(model, data, split, ctx, name, mirror)
 
 
 @register_method("PRN-FCN", ("gt-ortho", "gt-persp", "sh"), "PRN-FCN trained with the PR loss, lambda = 0.05")
@@ -168,7 +216,7 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
              "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
-    return _predict(model, data, split, ctx)
+    return _predict(model, data, split, ctx, name, bool(ctx.mirror_test))
 
 
 def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tuple[list[np.ndarray], dict]:

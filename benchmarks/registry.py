@@ -127,6 +127,8 @@ class RunContext:
     label_decay: str = "none"  # PRN-L: "none" (chosen on S8 held out) or "linear" (to 0 at the end of training)
     ema: float | None = None  # the networks' weight averaging (prn.train.TrainConfig.ema); None: each row's own
     label_frames: str = "as-is"  # "+NN" rows and PRN-L: solve the 2D as it is, or "unit" (prn.data.unit_frames)
+    mirror_test: bool | None = None  # test-time mirroring (prn.train.predict_mirrored); None: each row's own
+    mirror_train: bool | None = None  # mirrored copies of the training frames (and labels); None: each row's own
     network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
     labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")
     timings: dict = field(default_factory=dict)

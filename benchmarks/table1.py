@@ -288,6 +288,13 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                    help="the networks return an exponential moving average of their weights after the BN freeze, "
                         "with this decay per iteration (prn.train.TrainConfig.ema; 0: the last iterate; default: "
                         f"{PRN_L_EMA} for PRN-L, chosen on S8 held out, 0 for the other rows, as the paper)")
+    p.add_argument("--mirror-test", action=argparse.BooleanOptionalAction, default=None,
+                   help="each test frame also goes through the network mirrored (left and right swapped, x negated) "
+                        "and the two shapes are averaged, still one frame at a time (default: on for PRN-L, chosen "
+                        "on S8 held out; off for the other rows, as the paper)")
+    p.add_argument("--mirror-train", action=argparse.BooleanOptionalAction, default=None,
+                   help="PRN rows: train on the training frames and their mirror images (labels mirrored with them; "
+                        "default: PRN-L's own choice on S8 held out, off for the other rows)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "
                         "(for choosing a setting without them; no paper numbers beside it)")
@@ -389,7 +396,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      c3dpo_compile=args.c3dpo_compile, c3dpo_repeat=args.c3dpo_repeat,
                      compress_schedule=args.compress_schedule, label_solver=args.label_solver,
                      label_weight=args.label_weight, label_decay=args.label_decay, label_frames=args.label_frames,
-                     ema=args.ema,
+                     ema=args.ema, mirror_test=args.mirror_test, mirror_train=args.mirror_train,
                      label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
@@ -457,6 +464,7 @@ def _run(args: argparse.Namespace) -> int:
                         schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
                         label_params=ctx.label_params, label_frames=ctx.label_frames, ema=ctx.ema,
+                        mirror_test=ctx.mirror_test, mirror_train=ctx.mirror_train,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
                                "optimizer": args.c3dpo_optimizer, "inputs": args.c3dpo_inputs,

@@ -82,6 +82,62 @@ def denormalize(pred: np.ndarray, gt_3d: np.ndarray, visibility: np.ndarray | No
     return pred * scale[:, None, None]
 
 
+#: Name prefixes of a left / right pair of joints (``LHip`` / ``RHip``, ``leftShoulder`` / ``rightShoulder``).
+_SIDES = (("Left", "Right"), ("left", "right"), ("L", "R"), ("l_", "r_"))
+
+
+def _side(name: str) -> tuple[str, str, str] | None:
+    """(prefix, partner prefix, rest) where ``name`` names one side of the body, else None."""
+    for a, b in _SIDES:
+        for this, other in ((a, b), (b, a)):
+            rest = name[len(this):]
+            if name.startswith(this) and rest and (len(this) > 1 or rest[0].isupper() or rest[0] in "_ ."):
+                return this, other, rest
+    return None
+
+
+def mirror_permutation(joint_names) -> np.ndarray | None:
+    """`(P,)` the index of each joint's mirror image (left <-> right; a joint on the midline is its own), read from
+    the names' side prefixes (``LHip`` / ``RHip``, ``leftKnee`` / ``rightKnee``, ``l_ankle`` / ``r_ankle``); None
+    without names, without any left / right pair, or where a named side has no partner."""
+    if not joint_names:
+        return None
+    names = list(joint_names)
+    perm = np.arange(len(names))
+    for i, n in enumerate(names):
+        side = _side(n)
+        if side is not None:
+            partner = side[1] + side[2]
+            if partner not in names:
+                return None
+            perm[i] = names.index(partner)
+    return perm if (perm != np.arange(len(names))).any() else None
+
+
+def mirror_points(points: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """`(..., P, D)` points reflected in the image's x axis: each joint takes its mirror partner's point
+    (``perm``, :func:`mirror_permutation`) with x negated. Its own inverse."""
+    out = np.array(points, dtype=np.float64)[..., perm, :]
+    out[..., 0] *= -1.0
+    return out
+
+
+def mirror_sequence(seq: Sequence, perm: np.ndarray) -> Sequence:
+    """The sequence's mirror image (:func:`mirror_points` on the 2D and 3D; visibility follows the joints), a new
+    take (``meta['subject']`` and the name marked ``mirrored``), so that PRN's groups never mix the two."""
+    import dataclasses
+
+    if seq.projection != "orthographic" and seq.intrinsics is not None:
+        seq = seq.to_weak_perspective()
+    meta = dict(seq.meta)
+    meta["subject"] = f"{meta.get('subject', seq.name)} mirrored"
+    return dataclasses.replace(
+        seq, points_2d=mirror_points(seq.points_2d, perm),
+        visibility=None if seq.visibility is None else seq.visibility[:, perm],
+        points_3d=None if seq.points_3d is None else mirror_points(seq.points_3d, perm),
+        camera_rotations=None, name=f"{seq.name} mirrored", meta=meta)
+
+
 @dataclass
 class TrainingSet:
     """Frames ready for training, with the index tables used by the group samplers.

@@ -477,6 +477,20 @@ def predict(model: PRNFCN, inputs: np.ndarray, input_weights: np.ndarray | None 
     return np.concatenate(out) if out else np.zeros((0, model.n_points, 3))
 
 
+def predict_mirrored(model: PRNFCN, inputs: np.ndarray, input_weights: np.ndarray | None, input_perm: np.ndarray,
+                     output_perm: np.ndarray, batch: int = 4096) -> np.ndarray:
+    """The mean of the shapes :func:`predict` gives for the `(N, P_in, 2)` inputs and, mirrored back, for their
+    mirror images (test-time mirroring; ``input_perm`` `(P_in,)` and ``output_perm`` `(P,)` pair each input and
+    output point with its mirror partner, :func:`prn.data.mirror_permutation`). One frame at a time, like
+    :func:`predict`: `(N, P, 3)` normalised shapes."""
+    from prn.data import mirror_points
+
+    plain = predict(model, inputs, input_weights, batch)
+    weights = None if input_weights is None else np.asarray(input_weights)[:, input_perm]
+    mirrored = predict(model, mirror_points(inputs, input_perm), weights, batch)
+    return 0.5 * (plain + mirror_points(mirrored, output_perm))
+
+
 @torch.no_grad()
 def predict_images(model: torch.nn.Module, images, batch: int = 64) -> np.ndarray:
     """`(N, H, W, 3)` uint8 images (any image source, :mod:`prn.images`) -> `(N, P, 3)` normalised shapes."""
