@@ -892,8 +892,9 @@ def test_prn_l_trains_on_the_mean_of_two_solvers_labels(tmp_path, capsys, monkey
 
 
 def test_prn_l_mirrors_its_test_frames_and_trains_on_mirror_images_when_told(tmp_path, monkeypatch):
-    """PRN-L averages each test frame with its mirror image by default; ``--mirror-train`` adds the mirrored
-    training frames (and labels), a model of its own in the cache; ``--no-mirror-test`` predicts as the paper."""
+    """PRN-L trains on the frames and their mirror images (labels mirrored with them) and averages each test frame
+    with its mirror image by default; ``--no-mirror-train`` and ``--no-mirror-test`` train and predict as the
+    paper, the model cached apart."""
     monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1",))
     out = tmp_path / "m"
     args = ["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
@@ -905,14 +906,14 @@ def test_prn_l_mirrors_its_test_frames_and_trains_on_mirror_images_when_told(tmp
         avg = data["results"][0]["per_action"]["Avg"]["mpjpe_mm"]
         return data["meta"]["timings"]["PRN-L (gt-ortho)"], avg
 
-    mirrored, _ = run("--mirror-train")
+    mirrored, _ = run()
     assert mirrored["mirror_train"] and mirrored["mirror_test"] and not mirrored["cached"]
     key = json.loads((Path(mirrored["cache"]) / "train.json").read_text())
-    plain, plain_avg = run("--no-mirror-test")
+    plain, plain_avg = run("--no-mirror-test", "--no-mirror-train")
     assert not plain["mirror_train"] and "mirror_test" not in plain and plain["cache"] != mirrored["cache"]
     assert plain["labels"]["reused"] == plain["labels"]["cuts"]  # the labels are not mirrored in the cache
     frames = json.loads((Path(plain["cache"]) / "train.json").read_text())["data"]["frames"]
     assert key["data"]["frames"] == 2 * frames and key["data"]["streams"] > 0
-    again, again_avg = run()
+    again, again_avg = run("--no-mirror-train")
     assert again["cached"] and again["cache"] == plain["cache"] and again["mirror_test"]
     assert np.isfinite(again_avg) and again_avg != plain_avg and key["iterations_run"] == 12
