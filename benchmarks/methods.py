@@ -80,6 +80,21 @@ def mirror_perms(joint_names, input_points: np.ndarray | None) -> tuple[np.ndarr
     return np.array([pos[int(perm[k])] for k in keep]), perm
 
 
+def _with_mirror_images(inputs: list, targets: list | None, network: str) -> tuple[list, list | None, np.ndarray]:
+    """``--mirror-train``: the training sequences followed by their mirror images (:func:`prn.data.mirror_sequence`),
+    inputs and 2D targets alike, and the `(P,)` output permutation (to mirror the sequences' labels with them)."""
+    from prn.data import mirror_sequence
+
+    if network != "fcn":
+        raise NotRun("--mirror-train: mirrored images are not built; train the 2D networks with it")
+    perms = mirror_perms(inputs[0].joint_names, None)
+    if perms is None:
+        raise NotRun("--mirror-train: the joint names pair no left and right joints")
+    perm = perms[1]
+    return (inputs + [mirror_sequence(s, perm) for s in inputs],
+            None if targets is None else targets + [mirror_sequence(s, perm) for s in targets], perm)
+
+
 def _predict(model, data, split: Split, ctx: RunContext, name: str = "", mirror: bool = False) -> Predictions:
     """The test predictions; inputs normalised on their visible points where training points went missing and
     were normalised the same way, scaled back by the ground truth's statistic over those points. ``mirror``:
@@ -109,22 +124,16 @@ def _train_prn(split: Split, ctx: RunContext, name: str, lam: float, scores: boo
     """PRN (``lam`` > 0) or PRN w/o reg; ``scores``: detection scores weigh the data term; ``labels``: normalised
     pseudo-labels (one per training frame) and their cache key, pulled towards with ``ctx.label_weight`` (PRN-L,
     whose weights are averaged, :data:`PRN_L_EMA`, unless ``ctx.ema`` says otherwise)."""
-    from prn.data import build_training_set, mirror_points, mirror_sequence
+    from prn.data import build_training_set, mirror_points
     from prn.train import load_model, train
 
     network = _network(split, ctx)
     inputs, targets = split.train_inputs, split.train_targets
     mirror_train = (labels is not None and PRN_L_MIRROR_TRAIN) if ctx.mirror_train is None else ctx.mirror_train
     if mirror_train:
-        if network != "fcn":
-            raise NotRun("--mirror-train: mirrored images are not built; train the 2D networks with it")
-        perm = mirror_perms(inputs[0].joint_names, None)
-        if perm is None:
-            raise NotRun("--mirror-train: the joint names pair no left and right joints")
-        inputs = inputs + [mirror_sequence(s, perm[1]) for s in inputs]
-        targets = None if targets is None else targets + [mirror_sequence(s, perm[1]) for s in targets]
+        inputs, targets, perm = _with_mirror_images(inputs, targets, network)
         if labels is not None:
-            labels = (np.concatenate([labels[0], mirror_points(labels[0], perm[1])]), {**labels[1], "mirrored": True})
+            labels = (np.concatenate([labels[0], mirror_points(labels[0], perm)]), {**labels[1], "mirrored": True})
     data = build_training_set(inputs, targets, sampling=split.sampling,
                               images=split.train_images if network != "fcn" else None, scores=scores)
     extra = {} if labels is None else {"label_weight": ctx.label_weight, "label_decay": ctx.label_decay,
@@ -196,27 +205,35 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     from prn.data import build_training_set
     from prn.train import load_model
 
+    from prn.data import mirror_points
+
     network = _network(split, ctx)
     images = split.train_images if network != "fcn" else None
     config = _config(ctx, network, 0.0)
-    cache = ctx.cache_dir(name, {"config": cache_config(config), "data": split.tag,
-                                 "input": split.input_type, "targets": key})
+    inputs, targets = split.train_inputs, split.train_targets
+    cache_key = {"config": cache_config(config), "data": split.tag, "input": split.input_type, "targets": key}
+    if ctx.mirror_train:
+        inputs, targets, perm = _with_mirror_images(inputs, targets, network)
+        shapes = list(shapes) + [mirror_points(x, perm) for x in shapes]
+        cache_key["mirror_train"] = True
+    cache = ctx.cache_dir(name, cache_key)
     model_path = cache / "model.pt"
     if model_path.exists() and not ctx.retrain:
         log.info("%s: using the cached model %s", name, model_path)
         model = load_model(model_path, ctx.device)
-        data = build_training_set(split.train_inputs, split.train_targets, sampling="random")  # for test inputs
+        data = build_training_set(inputs, targets, sampling="random")  # for test inputs
         info = json.loads((cache / "train.json").read_text())
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": True, "train_seconds": info["seconds"], "iterations": info["iterations_run"],
              "cache": str(cache)})
     else:
-        res, data = train_supervised(split.train_inputs, shapes, config, cache, targets_2d=split.train_targets,
+        res, data = train_supervised(inputs, shapes, config, cache, targets_2d=targets,
                                      resume=not ctx.retrain, progress=ctx.progress, images=images)
         model = res.model
         ctx.timings.setdefault(f"{name} ({split.input_type})", {}).update(
             {"cached": False, "train_seconds": res.seconds, "iterations": res.iterations_run,
              "iterations_per_second": res.iterations_per_second, "cache": str(cache)})
+    ctx.timings[f"{name} ({split.input_type})"]["mirror_train"] = bool(ctx.mirror_train)
     return _predict(model, data, split, ctx, name, bool(ctx.mirror_test))
 
 

@@ -293,7 +293,7 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
                         "and the two shapes are averaged, still one frame at a time (default: on for PRN-L, chosen "
                         "on S8 held out; off for the other rows, as the paper)")
     p.add_argument("--mirror-train", action=argparse.BooleanOptionalAction, default=None,
-                   help="PRN rows: train on the training frames and their mirror images (labels mirrored with them; "
+                   help="the 2D networks train on the training frames and their mirror images (labels mirrored with them; "
                         "default: on for PRN-L, chosen on S8 held out; off for the other rows, as the paper)")
     p.add_argument("--validate", metavar="SUBJECT", default=None,
                    help="hold this training subject out of training and evaluate on it instead of the test subjects "

@@ -917,3 +917,7 @@ def test_prn_l_mirrors_its_test_frames_and_trains_on_mirror_images_when_told(tmp
     again, again_avg = run("--no-mirror-train")
     assert again["cached"] and again["cache"] == plain["cache"] and again["mirror_test"]
     assert np.isfinite(again_avg) and again_avg != plain_avg and key["iterations_run"] == 12
+    assert table1.main(args[:-4] + ["--methods", "PR + NN", "--mirror-train"]) == 0  # a "+NN" row, when told
+    nn = json.loads((out / "table1.json").read_text())["meta"]["timings"]["PR + NN (gt-ortho)"]
+    assert nn["mirror_train"] and "mirror_test" not in nn and nn["labels"]["reused"] == nn["labels"]["cuts"]
+    assert json.loads((Path(nn["cache"]) / "train.json").read_text())["data"]["frames"] == 2 * frames
