@@ -64,33 +64,16 @@ def _config(ctx: RunContext, network: str, lam: float, ema: float = 0.0, **extra
                     ema=ema if ctx.ema is None else ctx.ema, **missing, **extra)
 
 
-def mirror_perms(joint_names, input_points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
-    """(input, output) mirror permutations (:func:`prn.data.mirror_permutation`) for a network whose inputs are
-    ``input_points`` of the joints (None: all), or None where the names pair no joints or an input's mirror
-    partner is no input."""
-    from prn.data import mirror_permutation
-
-    perm = mirror_permutation(joint_names)
-    if perm is None:
-        return None
-    keep = np.arange(len(perm)) if input_points is None else np.asarray(input_points)
-    pos = {int(k): i for i, k in enumerate(keep)}
-    if any(int(perm[k]) not in pos for k in keep):
-        return None
-    return np.array([pos[int(perm[k])] for k in keep]), perm
-
-
 def _with_mirror_images(inputs: list, targets: list | None, network: str) -> tuple[list, list | None, np.ndarray]:
     """``--mirror-train``: the training sequences followed by their mirror images (:func:`prn.data.mirror_sequence`),
     inputs and 2D targets alike, and the `(P,)` output permutation (to mirror the sequences' labels with them)."""
-    from prn.data import mirror_sequence
+    from prn.data import mirror_permutation, mirror_sequence
 
     if network != "fcn":
         raise NotRun("--mirror-train: mirrored images are not built; train the 2D networks with it")
-    perms = mirror_perms(inputs[0].joint_names, None)
-    if perms is None:
+    perm = mirror_permutation(inputs[0].joint_names)
+    if perm is None:
         raise NotRun("--mirror-train: the joint names pair no left and right joints")
-    perm = perms[1]
     return (inputs + [mirror_sequence(s, perm) for s in inputs],
             None if targets is None else targets + [mirror_sequence(s, perm) for s in targets], perm)
 
@@ -100,7 +83,7 @@ def _predict(model, data, split: Split, ctx: RunContext, name: str = "", mirror:
     were normalised the same way, scaled back by the ground truth's statistic over those points. ``mirror``:
     each frame's shape averaged with its mirror image's (:func:`prn.train.predict_mirrored`), where the joint
     names pair left and right."""
-    from prn.data import denormalize
+    from prn.data import denormalize, mirror_perms
     from prn.train import predict, predict_images, predict_mirrored
 
     if split.input_type == "rgb":
@@ -110,9 +93,8 @@ def _predict(model, data, split: Split, ctx: RunContext, name: str = "", mirror:
         ctx.timings.setdefault(f"{name} ({split.input_type})", {})["mirror_test"] = perms is not None
         if perms is None:
             log.warning("%s: no test-time mirroring: the joint names pair no left and right joints", name)
-    out = Predictions((predict(model, *data.prepare_inputs(seq, ctx.normalise_on)) if perms is None else
-                       predict_mirrored(model, *data.prepare_inputs(seq, ctx.normalise_on), *perms))
-                      for seq in split.test_inputs)
+    inputs = (data.prepare_inputs(seq, ctx.normalise_on) for seq in split.test_inputs)
+    out = Predictions(predict(model, *x) if perms is None else predict_mirrored(model, *x, *perms) for x in inputs)
     if ctx.missing_points > 0 and ctx.normalise_on == "visible":
         out.millimetres = [denormalize(p, t.points_3d, s.weights > 0)
                            for p, s, t in zip(out, split.test_inputs, split.test_truth)]
@@ -202,10 +184,8 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     """PRN-FCN trained on ``shapes`` with the supervised 3D loss (:mod:`baselines.supervised`), cached by
     configuration and ``key`` (what the shapes are), then run on the test inputs."""
     from baselines.supervised import train_supervised
-    from prn.data import build_training_set
+    from prn.data import build_training_set, mirror_points
     from prn.train import load_model
-
-    from prn.data import mirror_points
 
     network = _network(split, ctx)
     images = split.train_images if network != "fcn" else None

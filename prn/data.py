@@ -114,6 +114,20 @@ def mirror_permutation(joint_names) -> np.ndarray | None:
     return perm if (perm != np.arange(len(names))).any() else None
 
 
+def mirror_perms(joint_names, input_points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(input, output) mirror permutations (:func:`mirror_permutation`) for a network whose inputs are
+    ``input_points`` of the joints (None: all), or None where the names pair no joints or an input's mirror
+    partner is no input."""
+    perm = mirror_permutation(joint_names)
+    if perm is None:
+        return None
+    keep = np.arange(len(perm)) if input_points is None else np.asarray(input_points)
+    pos = {int(k): i for i, k in enumerate(keep)}
+    if any(int(perm[k]) not in pos for k in keep):
+        return None
+    return np.array([pos[int(perm[k])] for k in keep]), perm
+
+
 def mirror_points(points: np.ndarray, perm: np.ndarray) -> np.ndarray:
     """`(..., P, D)` points reflected in the image's x axis: each joint takes its mirror partner's point
     (``perm``, :func:`mirror_permutation`) with x negated. Its own inverse."""

@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.methods import mirror_perms
 from nrsfm.datasets.h36m import JOINT_NAMES
 from nrsfm.datasets.synthetic import human_sequences
-from prn.data import build_training_set, mirror_permutation, mirror_points, mirror_sequence
+from prn.data import build_training_set, mirror_permutation, mirror_perms, mirror_points, mirror_sequence
 from prn.model import PRNFCN
 from prn.train import predict, predict_mirrored
 
