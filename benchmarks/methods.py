@@ -52,6 +52,11 @@ PRN_L_MIRROR_TEST = True
 #: with them), chosen on S8 held out (benchmarks/RESULTS.md, PRN-L).
 PRN_L_MIRROR_TRAIN = True
 
+#: PRN-L solves its pseudo-labels from the 2D its data term compares with (on SH the ground-truth 2D the paper's SH
+#: networks are trained against, not the detections they read), chosen on S8 held out (benchmarks/RESULTS.md,
+#: PRN-L); the "+NN" rows solve them from their inputs.
+PRN_L_LABEL_SOURCE = "targets"
+
 
 def _config(ctx: RunContext, network: str, lam: float, ema: float = 0.0, **extra):
     """The PRN recipe of ``ctx`` (:func:`benchmarks.registry.schedule`): iterations, schedule, alignment groups,
@@ -217,17 +222,24 @@ def _cached_supervised(split: Split, ctx: RunContext, name: str, shapes: list[np
     return _predict(model, data, split, ctx, name, bool(ctx.mirror_test))
 
 
-def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tuple[list[np.ndarray], dict]:
-    """Pseudo-labels of ``solver`` on the training inputs (:mod:`baselines.labels`; perspective tracks as
-    weak-perspective ones, each frame scaled to a unit xy norm when ``ctx.label_frames`` is "unit"), one `(F, P, 3)`
-    array per training sequence, and their cache key; the label summary goes to ``ctx.timings``. Solvers joined by
-    "+" (``"pr+empnd"``) give the equal-weight mean of their label sets (:mod:`baselines.label_mix`)."""
+def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str,
+                  source: str = "inputs") -> tuple[list[np.ndarray], dict]:
+    """Pseudo-labels of ``solver`` on the training inputs, or on the 2D targets of the data term with ``source``
+    "targets" (``ctx.label_source`` overrides; :mod:`baselines.labels`; perspective tracks as weak-perspective ones,
+    each frame scaled to a unit xy norm when ``ctx.label_frames`` is "unit"), one `(F, P, 3)` array per training
+    sequence, and their cache key; the label summary goes to ``ctx.timings``. Solvers joined by "+"
+    (``"pr+empnd"``) give the equal-weight mean of their label sets (:mod:`baselines.label_mix`)."""
     from baselines.label_mix import mix_labels, parse_label_solvers
     from baselines.labels import code_version, make_labels
     from prn.data import unit_frames
 
-    tracks = [s.to_weak_perspective() if s.projection == "perspective" else s for s in split.train_inputs]
-    dataset = split.labels_tag or split.tag
+    source = ctx.label_source or source
+    targets = source == "targets" and split.train_targets is not split.train_inputs
+    tracks = [s.to_weak_perspective() if s.projection == "perspective" else s
+              for s in (split.train_targets if targets else split.train_inputs)]
+    dataset = (targets and split.targets_labels_tag) or split.labels_tag or split.tag
+    if targets and dataset == (split.labels_tag or split.tag):
+        dataset += "-targets"
     if ctx.label_frames == "unit":
         tracks, dataset = [unit_frames(s) for s in tracks], dataset + "-unit-frames"
     sets = [make_labels(tracks, part, ctx.label_params.get(part),
@@ -236,7 +248,7 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
             for part in parse_label_solvers(solver)]
     labels = sets[0] if len(sets) == 1 else mix_labels(sets, truth=split.train_targets)
     s = labels.summary
-    s["label_mpjpe_mm"], s["frames_solved"] = s["label_mpjpe"], ctx.label_frames
+    s["label_mpjpe_mm"], s["frames_solved"], s["source"] = s["label_mpjpe"], ctx.label_frames, source
     log.info("%s: labels from %s: %d cuts, %d failed, %d of %d frames labelled, label MPJPE %s (the ground "
              "truth's units: mm on Human3.6M), %.0f s", name,
              solver, s["cuts"], s["failed"], s["labelled_frames"], s["frames"],
@@ -247,6 +259,8 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str) -> tupl
         key["weights"] = s["weights"]
     if ctx.label_frames != "as-is":
         key["frames"] = ctx.label_frames
+    if targets:
+        key["source"] = "targets"
     return labels.labels, key
 
 
@@ -262,7 +276,7 @@ def _plus_nn(split: Split, ctx: RunContext, name: str, solver: str) -> list[np.n
 def prn_l(split: Split, ctx: RunContext) -> list[np.ndarray]:
     from baselines.supervised import normalised_targets
 
-    labels, key = pseudo_labels(split, ctx, "PRN-L", ctx.label_solver)
+    labels, key = pseudo_labels(split, ctx, "PRN-L", ctx.label_solver, PRN_L_LABEL_SOURCE)
     return _train_prn(split, ctx, "PRN-L", 0.05, labels=(normalised_targets(labels), key))
 
 

@@ -45,6 +45,8 @@ class Split:
         train_images / test_images: for ``rgb``, one image source per sequence (:mod:`prn.images`).
         labels_tag: identifies the 2D the pseudo-labels are solved from (default ``tag``), so that tables on the
             same 2D share them.
+        targets_labels_tag: the same for ``train_targets`` where they are other sequences than ``train_inputs``
+            (SH: the ground-truth 2D that the data term compares with).
     """
 
     train_inputs: list[Sequence]
@@ -57,6 +59,7 @@ class Split:
     train_images: list | None = None
     test_images: list | None = None
     labels_tag: str = ""
+    targets_labels_tag: str = ""
 
 
 class NotRun(Exception):
@@ -129,6 +132,7 @@ class RunContext:
     label_frames: str = "as-is"  # "+NN" rows and PRN-L: solve the 2D as it is, or "unit" (prn.data.unit_frames)
     mirror_test: bool | None = None  # test-time mirroring (prn.train.predict_mirrored); None: each row's own
     mirror_train: bool | None = None  # mirrored copies of the training frames (and labels); None: each row's own
+    label_source: str | None = None  # pseudo-labels solved from the "inputs" or the data term's "targets"; None: row's
     network: str = "resnet50"  # rgb input: PRN-CNN's backbone (prn.images.BACKBONES)
     labels_dir: Path | None = None  # "+NN" rows: the pseudo-labels' cache (default: out_dir / "labels")
     timings: dict = field(default_factory=dict)

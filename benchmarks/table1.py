@@ -132,7 +132,7 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
             if inp == "sh":  # detector-like noise, and no Neck/Nose detection (16 of 17 points), as SH
                 tr_in = [_drop_neck(s) for s in human_sequences(train_s, noise=8.0, **kw)]
                 te_in = [_drop_neck(s) for s in human_sequences(test_s, noise=8.0, **kw)]
-                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"{tag}-sh")
+                splits[inp] = Split(tr_in, tr, te_in, te, inp, tag=f"{tag}-sh", targets_labels_tag=f"{tag}-gt-persp")
             else:
                 splits[inp] = Split(tr, tr, te, te, inp, tag=f"{tag}-{inp}")
         return splits, desc
@@ -173,7 +173,8 @@ def load_splits(args: argparse.Namespace, inputs: tuple[str, ...]) -> tuple[dict
             tr_in = load(train_s, "sh")
             tr_names = {s.name for s in tr_in}
             tr_gt = [s for s in load(train_s, "gt-persp") if s.name in tr_names]
-            splits[inp] = Split(tr_in, tr_gt, te_in, te_gt, inp, tag=tag, labels_tag=labels_tag)
+            splits[inp] = Split(tr_in, tr_gt, te_in, te_gt, inp, tag=tag, labels_tag=labels_tag,
+                                targets_labels_tag=f"h36m-{stride}-gt-persp")
         else:
             tr, te = load(train_s, inp), load(test_s, inp)
             splits[inp] = Split(tr, tr, te, te, inp, tag=tag, labels_tag=labels_tag)
@@ -284,6 +285,11 @@ def parser(prog: str = "python -m benchmarks.table1", description: str | None = 
     p.add_argument("--label-frames", choices=["as-is", "unit"], default=RunContext.label_frames,
                    help="PRN-L and the +NN rows: solve each training frame's 2D as it is (default) or centred and "
                         "scaled to a unit xy norm first (weak-perspective tracks change scale with depth and camera)")
+    p.add_argument("--label-source", choices=["inputs", "targets"], default=None,
+                   help="PRN-L and the +NN rows: solve the pseudo-labels from the network's 2D inputs or from the 2D "
+                        "its data term compares with (they differ on SH only: detections in, ground-truth 2D as the "
+                        "paper's SH networks are trained against; default: targets for PRN-L, chosen on S8 held out, "
+                        "inputs for the +NN rows)")
     p.add_argument("--ema", type=float, default=RunContext.ema,
                    help="the networks return an exponential moving average of their weights after the BN freeze, "
                         "with this decay per iteration (prn.train.TrainConfig.ema; 0: the last iterate; default: "
@@ -397,7 +403,7 @@ def run_rows(args: argparse.Namespace, keep_predictions: bool = False) -> Rows:
                      compress_schedule=args.compress_schedule, label_solver=args.label_solver,
                      label_weight=args.label_weight, label_decay=args.label_decay, label_frames=args.label_frames,
                      ema=args.ema, mirror_test=args.mirror_test, mirror_train=args.mirror_train,
-                     label_params=QUICK_LABEL_PARAMS if args.quick else {})
+                     label_source=args.label_source, label_params=QUICK_LABEL_PARAMS if args.quick else {})
     splits, desc = load_splits(args, inputs)
     log.info("table1: %s, train %s, test %s, %d iterations", desc["data"], desc["train_subjects"],
              desc["test_subjects"], iterations)
@@ -463,7 +469,8 @@ def _run(args: argparse.Namespace) -> int:
                         inputs=list(inputs), protocols=PROTOCOL_TEXT,
                         schedule=schedule_text(iterations, ctx.compress_schedule),
                         methods=names, iterations=iterations, seed=args.seed, quick=args.quick,
-                        label_params=ctx.label_params, label_frames=ctx.label_frames, ema=ctx.ema,
+                        label_params=ctx.label_params, label_frames=ctx.label_frames,
+                        label_source=ctx.label_source, ema=ctx.ema,
                         mirror_test=ctx.mirror_test, mirror_train=ctx.mirror_train,
                         c3dpo={"iterations": args.c3dpo_iterations, "batch": args.c3dpo_batch,
                                "keypoint_rescale": args.c3dpo_rescale,
