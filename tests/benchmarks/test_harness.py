@@ -921,3 +921,27 @@ def test_prn_l_mirrors_its_test_frames_and_trains_on_mirror_images_when_told(tmp
     nn = json.loads((out / "table1.json").read_text())["meta"]["timings"]["PR + NN (gt-ortho)"]
     assert nn["mirror_train"] and "mirror_test" not in nn and nn["labels"]["reused"] == nn["labels"]["cuts"]
     assert json.loads((Path(nn["cache"]) / "train.json").read_text())["data"]["frames"] == 2 * frames
+
+
+def test_prn_l_solves_its_labels_from_the_data_terms_2d_and_the_inputs_when_told(tmp_path, monkeypatch):
+    """On SH, PRN-L's labels come from the 2D its data term compares with (ground-truth 2D, the GT-persp row's
+    very labels, read back), more accurate than the detections' (``--label-source inputs``), the model cached
+    apart."""
+    monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1",))
+    out = tmp_path / "s"
+    args = ["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
+            "--methods", "PRN-L", "--label-solver", "pr", "--no-mirror-train", "--no-mirror-test"]
+
+    def run(*extra):
+        assert table1.main(args + list(extra)) == 0
+        data = json.loads((out / "table1.json").read_text())
+        return next(iter(data["meta"]["timings"].values()))
+
+    persp = run("--input", "gt-persp")
+    targets = run("--input", "sh")
+    assert targets["labels"]["source"] == "targets" and targets["labels"]["reused"] == persp["labels"]["cuts"]
+    assert targets["labels"]["label_mpjpe_mm"] == persp["labels"]["label_mpjpe_mm"]
+    inputs = run("--input", "sh", "--label-source", "inputs")
+    assert inputs["labels"]["source"] == "inputs" and inputs["labels"]["reused"] == 0
+    assert inputs["labels"]["label_mpjpe_mm"] > targets["labels"]["label_mpjpe_mm"] + 1.0
+    assert inputs["cache"] != targets["cache"] and not inputs["cached"]
