@@ -79,11 +79,13 @@ def test_table1_validate_holds_a_training_subject_out_and_evaluates_on_it(tmp_pa
 
 @pytest.mark.parametrize("inp", ["gt-persp", "sh"])
 def test_pr_nn_and_prn_l_run_on_perspective_input_and_share_the_labels(tmp_path, capsys, monkeypatch, inp):
-    """On GT-persp and on the detections (SH: no Neck/Nose in any frame, so that point has no label)."""
+    """On GT-persp and on the detections (SH: no Neck/Nose in any frame, so that point has no label; PRN-L reads
+    the detections' labels when told, ``--label-source inputs``)."""
     monkeypatch.setattr(table1.h36m, "TRAIN_SUBJECTS", ("S1", "S5"))
     out = tmp_path / "p"
     assert table1.main(["--quick", "--iterations", "12", "--out", str(out), "--no-progress", "--jobs", "1",
-                        "--input", inp, "--methods", "PR + NN,PRN-L", "--label-solver", "pr"]) == 0
+                        "--input", inp, "--methods", "PR + NN,PRN-L", "--label-solver", "pr",
+                        "--label-source", "inputs"]) == 0
     data = json.loads((out / "table1.json").read_text())
     avg = {r["method"]: r["per_action"]["Avg"]["mpjpe_mm"] for r in data["results"] if r["input"] == inp}
     assert set(avg) == {"PR + NN", "PRN-L"} and all(np.isfinite(v) for v in avg.values())
