@@ -237,9 +237,9 @@ def pseudo_labels(split: Split, ctx: RunContext, name: str, solver: str,
     targets = source == "targets" and split.train_targets is not split.train_inputs
     tracks = [s.to_weak_perspective() if s.projection == "perspective" else s
               for s in (split.train_targets if targets else split.train_inputs)]
-    dataset = (targets and split.targets_labels_tag) or split.labels_tag or split.tag
-    if targets and dataset == (split.labels_tag or split.tag):
-        dataset += "-targets"
+    dataset = split.labels_tag or split.tag
+    if targets:
+        dataset = split.targets_labels_tag or dataset + "-targets"
     if ctx.label_frames == "unit":
         tracks, dataset = [unit_frames(s) for s in tracks], dataset + "-unit-frames"
     sets = [make_labels(tracks, part, ctx.label_params.get(part),
